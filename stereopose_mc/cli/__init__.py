@@ -1,0 +1,1 @@
+"""The ``spmc`` command line: thin typer commands, each calling one typed function."""

@@ -1,0 +1,28 @@
+"""The typer application and the helpers every command shares.
+
+Errors in user input (scenario files, run directories) print one line per problem on
+stderr and exit with code 2, writing nothing.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..config import ScenarioError, load_scenario
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help="stereopose_mc: Monte Carlo runs of stereo-vision relative pose, motion and inertia estimation.")
+
+
+def fail(lines: list[str] | str, code: int = 2) -> None:
+    for line in [lines] if isinstance(lines, str) else lines:
+        typer.echo(f"error: {line}", err=True)
+    raise typer.Exit(code)
+
+
+def load_or_exit(path: Path, overrides: dict | None = None):
+    try:
+        return load_scenario(path, overrides)
+    except ScenarioError as exc:
+        fail([str(p) for p in exc.problems])

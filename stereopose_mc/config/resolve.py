@@ -1,0 +1,133 @@
+"""Scenario -> plain SI numbers for the simulator and the filters."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core import state as st
+from ..core.orbit import Orbit
+from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, Scenario
+
+DEG = np.pi / 180.0
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Everything numeric a scenario fixes, in SI units."""
+
+    orbit: Orbit
+    x0: Array  # true initial state (n,)
+    dt: float
+    steps: int  # number of steps after t = 0
+    window_start: float
+    baseline: float
+    focal: float
+    disparity: bool
+    pseudo: bool
+    sigma_image: float
+    sigma_flow: float
+    sigma_disparity: float
+    sigma_alpha: float
+    P0_diag: Array
+    truth_rtol: float
+
+    @property
+    def n_points(self) -> int:
+        return st.n_points(self.x0.size)
+
+    @property
+    def times(self) -> Array:
+        return self.dt * np.arange(self.steps + 1)
+
+
+def orbit_of(s: Scenario) -> Orbit:
+    o = s.leader.orbit
+    return Orbit(
+        a=o.a_km * 1e3, e=o.e, i=o.i_deg * DEG, raan=o.raan_deg * DEG, argp=o.argp_deg * DEG, nu0=o.true_anomaly_deg * DEG
+    )
+
+
+def block_diag(c: CovarianceConfig | ProcessNoiseConfig, n_points: int) -> Array:
+    """Diagonal (n,) of a per-block covariance given in the scenario's units."""
+    d = np.empty(st.size(n_points))
+    b = st.block_index(n_points)
+    d[b["rho"]] = c.rho_m2
+    d[b["rho_dot"]] = c.rho_dot_m2ps2
+    d[b["omega"]] = c.omega_deg2ps2 * DEG**2
+    d[b["q"]] = c.q
+    d[b["feature_points"]] = c.feature_points_m2
+    d[b["k"]] = c.k
+    return d
+
+
+def setup_of(s: Scenario) -> Setup:
+    ti = s.truth_initial_state
+    pts = np.asarray(s.target.feature_points_m, dtype=float)
+    k = st.k_from_inertia(np.asarray(s.target.inertia_kgm2, dtype=float))
+    x0 = st.assemble(ti.rho_m, ti.rho_dot_mps, np.asarray(ti.omega_degps) * DEG, ti.q, pts, k)
+    m = s.measurements
+    return Setup(
+        orbit=orbit_of(s),
+        x0=x0,
+        dt=s.time.dt_s,
+        steps=int(round(s.time.duration_s / s.time.dt_s)),
+        window_start=s.time.error_window_start_s,
+        baseline=s.camera.baseline_m,
+        focal=s.camera.focal_length,
+        disparity=m.disparity,
+        pseudo=m.inertia_pseudo_measurement.enabled,
+        sigma_image=m.image_sigma,
+        sigma_flow=m.flow_sigma,
+        sigma_disparity=m.disparity_sigma_value,
+        sigma_alpha=m.inertia_pseudo_measurement.angular_acceleration_sigma_radps2,
+        P0_diag=block_diag(s.initial_covariance, len(pts)),
+        truth_rtol=s.time.truth_rtol,
+    )
+
+
+@dataclass(frozen=True)
+class FilterSetup:
+    """A filter's own tuning in SI: R's standard deviations and Q's diagonal."""
+
+    label: str
+    kind: str  # "ekf" | "iekf"
+    sigma_image: float
+    sigma_flow: float
+    sigma_disparity: float
+    sigma_alpha: float
+    Q_diag: Array
+    transition: str
+    taylor_order: int
+    substeps: int
+    tolerance: float = 0.01
+    max_iterations: int = 1
+    step_control: str = "none"
+    stopping: str = "mahalanobis"
+
+
+def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
+    r = f.measurement_noise
+    extra = {}
+    if isinstance(f, IEKFConfig):
+        extra = dict(
+            tolerance=f.tolerance, max_iterations=f.max_iterations, step_control=f.step_control, stopping=f.stopping
+        )
+    return FilterSetup(
+        label=f.label,
+        kind=f.type,
+        sigma_image=r.image_sigma if r.image_sigma is not None else s.sigma_image,
+        sigma_flow=r.flow_sigma if r.flow_sigma is not None else s.sigma_flow,
+        sigma_disparity=r.disparity_sigma if r.disparity_sigma is not None else s.sigma_disparity,
+        sigma_alpha=r.angular_acceleration_sigma_radps2
+        if r.angular_acceleration_sigma_radps2 is not None
+        else s.sigma_alpha,
+        Q_diag=block_diag(f.process_noise, s.n_points),
+        transition=f.transition,
+        taylor_order=f.taylor_order,
+        substeps=f.integration_substeps,
+        **extra,
+    )

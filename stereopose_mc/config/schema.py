@@ -1,0 +1,209 @@
+"""The scenario schema (the public contract of a scenario YAML file).
+
+Units follow the key names: ``_km``, ``_m``, ``_deg``, ``_degps`` (deg/s), ``_m2``
+(variances), ``_deg2ps2`` (deg^2/s^2). Everything is converted to SI (m, s, rad) by
+``stereopose_mc.config.resolve``; the numerical core never sees degrees.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+SCHEMA_VERSION = 1
+
+Pos = Annotated[float, Field(gt=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True)
+
+
+class TimeConfig(_Model):
+    dt_s: Pos = 1.0
+    duration_s: Pos = 100.0
+    error_window_start_s: NonNeg = 10.0
+    truth_rtol: Annotated[float, Field(gt=0, lt=1e-3)] = 1e-12
+
+    @model_validator(mode="after")
+    def _whole_steps(self):
+        steps = self.duration_s / self.dt_s
+        if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
+            raise ValueError(f"duration_s ({self.duration_s}) must be a whole number of dt_s ({self.dt_s})")
+        if self.error_window_start_s >= self.duration_s:
+            raise ValueError("error_window_start_s must be before duration_s")
+        return self
+
+
+class OrbitConfig(_Model):
+    a_km: Pos
+    e: Annotated[float, Field(ge=0, lt=1)]
+    i_deg: float = 0.0
+    raan_deg: float = 0.0
+    argp_deg: float = 0.0
+    true_anomaly_deg: float = 0.0
+
+    @model_validator(mode="after")
+    def _above_ground(self):
+        if self.a_km * (1.0 - self.e) < 6378.137:
+            raise ValueError(f"perigee radius a(1-e) = {self.a_km * (1 - self.e):.1f} km is below the Earth's surface")
+        return self
+
+
+class LeaderConfig(_Model):
+    orbit: OrbitConfig
+
+
+class TargetConfig(_Model):
+    inertia_kgm2: Annotated[list[Pos], Field(min_length=3, max_length=3)] = Field(
+        description="principal moments Ix, Iy, Iz (kg m^2); only their ratios matter torque-free"
+    )
+    feature_points_m: Annotated[list[Vec3], Field(min_length=1)]
+
+    @field_validator("inertia_kgm2")
+    @classmethod
+    def _triangle(cls, v):
+        a, b, c = v
+        if a + b < c or a + c < b or b + c < a:
+            raise ValueError(f"principal moments {v} violate the triangle inequality (no rigid body has them)")
+        return v
+
+
+class InitialStateConfig(_Model):
+    rho_m: Vec3
+    rho_dot_mps: Vec3
+    omega_degps: Vec3
+    q: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
+        description="scalar first, target -> leader (LVLH); normalized on load"
+    )
+
+    @field_validator("q")
+    @classmethod
+    def _nonzero(cls, v):
+        n = float(np.linalg.norm(v))
+        if not np.isfinite(n) or n < 1e-12:
+            raise ValueError("quaternion must be non-zero")
+        return [float(c) / n for c in v]
+
+
+class CameraConfig(_Model):
+    baseline_m: Pos = 1.0
+    focal_length: Pos = 1.0
+
+
+class PseudoMeasurementConfig(_Model):
+    enabled: bool = True
+    angular_acceleration_sigma_radps2: Pos = 1e-6
+    angular_acceleration: Literal["truth_plus_noise"] = "truth_plus_noise"
+
+
+class MeasurementsConfig(_Model):
+    image_sigma: NonNeg = 1e-5
+    flow_sigma: NonNeg = 1e-5
+    disparity: bool = False
+    disparity_sigma: NonNeg | None = Field(
+        default=None, description="noise of the disparity channel; default sqrt(2) image_sigma"
+    )
+    inertia_pseudo_measurement: PseudoMeasurementConfig = PseudoMeasurementConfig()
+
+    @property
+    def disparity_sigma_value(self) -> float:
+        return self.disparity_sigma if self.disparity_sigma is not None else float(np.sqrt(2.0)) * self.image_sigma
+
+
+class CovarianceConfig(_Model):
+    """Diagonal variances per state block."""
+
+    rho_m2: NonNeg
+    rho_dot_m2ps2: NonNeg
+    omega_deg2ps2: NonNeg
+    q: NonNeg
+    feature_points_m2: NonNeg
+    k: NonNeg
+
+
+class FilterMeasurementNoise(_Model):
+    """The filter's own R, per measurement type (standard deviations); default: the truth's."""
+
+    image_sigma: Pos | None = None
+    flow_sigma: Pos | None = None
+    disparity_sigma: Pos | None = None
+    angular_acceleration_sigma_radps2: Pos | None = None
+
+
+class ProcessNoiseConfig(_Model):
+    """The filter's Q, variances added per step, per state block."""
+
+    rho_m2: NonNeg = 0.0
+    rho_dot_m2ps2: NonNeg = 1e-12
+    omega_deg2ps2: NonNeg = 1e-10
+    q: NonNeg = 1e-12
+    feature_points_m2: NonNeg = 0.0
+    k: NonNeg = 1e-10
+
+
+class _FilterBase(_Model):
+    name: str | None = Field(default=None, description="label in outputs; default the type")
+    measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
+    process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
+    transition: Literal["expm", "taylor"] = "taylor"
+    taylor_order: Annotated[int, Field(ge=1, le=12)] = 4
+    integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 2
+
+    @property
+    def label(self) -> str:
+        return self.name or self.type  # type: ignore[attr-defined]
+
+
+class EKFConfig(_FilterBase):
+    type: Literal["ekf"]
+
+
+class IEKFConfig(_FilterBase):
+    type: Literal["iekf"]
+    tolerance: Pos = 0.01
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 10
+    step_control: Literal["line_search", "levenberg_marquardt", "none"] = "line_search"
+    stopping: Literal["mahalanobis", "scaled", "raw"] = "mahalanobis"
+
+
+FilterConfig = Annotated[Union[IEKFConfig, EKFConfig], Field(discriminator="type")]
+
+
+class DivergenceConfig(_Model):
+    """Bounds on the estimation error beyond which a trial is marked diverged."""
+
+    rho_m: Pos = 1000.0
+    rho_dot_mps: Pos = 100.0
+    omega_degps: Pos = 180.0
+    k: Pos = 20.0
+
+
+class Scenario(_Model):
+    name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
+    description: str = ""
+    seed: Annotated[int, Field(ge=0)]
+    trials: Annotated[int, Field(ge=1)] = 100
+    time: TimeConfig = TimeConfig()
+    leader: LeaderConfig
+    target: TargetConfig
+    truth_initial_state: InitialStateConfig
+    camera: CameraConfig = CameraConfig()
+    measurements: MeasurementsConfig = MeasurementsConfig()
+    initial_covariance: CovarianceConfig
+    filters: Annotated[list[FilterConfig], Field(min_length=1)] = Field(
+        default_factory=lambda: [IEKFConfig(type="iekf")]
+    )
+    percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
+    divergence: DivergenceConfig = DivergenceConfig()
+
+    @model_validator(mode="after")
+    def _checks(self):
+        labels = [f.label for f in self.filters]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"filter labels must be unique (got {labels}); give each a 'name'")
+        return self

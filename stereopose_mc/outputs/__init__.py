@@ -1,0 +1,1 @@
+"""Run directories, Parquet tables, percentile tables, figures and reports."""

@@ -1,0 +1,117 @@
+"""Run directories: atomic writes, manifests, Parquet with metadata."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from .. import __version__
+from ..config.schema import SCHEMA_VERSION
+
+
+class RunDirError(Exception):
+    """A run directory that cannot be written or read as asked."""
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def git_revision() -> str | None:
+    """The git revision of the package's checkout, if it is one."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def base_manifest(command: list[str] | None = None) -> dict[str, Any]:
+    return {
+        "package": "stereopose_mc",
+        "version": __version__,
+        "schema_version": SCHEMA_VERSION,
+        "git_revision": git_revision(),
+        "host": platform.node(),
+        "python": sys.version.split()[0],
+        "command": command if command is not None else sys.argv,
+    }
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+
+
+def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None) -> None:
+    """Write ``df`` as Parquet atomically, with ``metadata`` in the file's key-value metadata.
+
+    Written without pandas' index and with a fixed writer so that the same table gives
+    the same bytes.
+    """
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    meta = dict(table.schema.metadata or {})
+    meta.pop(b"pandas", None)
+    for k, v in (metadata or {}).items():
+        meta[k.encode()] = str(v).encode()
+    table = table.replace_schema_metadata(meta)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        pq.write_table(table, tmp, compression="zstd", write_statistics=False)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_parquet_metadata(path: Path) -> dict[str, str]:
+    md = pq.read_schema(path).metadata or {}
+    return {k.decode(): v.decode() for k, v in md.items()}
+
+
+def prepare_dir(path: Path, overwrite: bool) -> None:
+    """Create an empty output directory; refuse to reuse a non-empty one unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and any(path.iterdir()):
+        if not overwrite:
+            raise RunDirError(f"{path} already exists and is not empty; pass --overwrite to replace it")
+        shutil.rmtree(path)
+    path.mkdir(parents=True, exist_ok=True)
