@@ -1,5 +1,94 @@
-"""``spmc run``, ``rerun``, ``report``, ``compare`` (Monte Carlo engine and outputs)."""
+"""``spmc run``, ``spmc rerun`` (Monte Carlo engine)."""
 
 from __future__ import annotations
 
-from .app import app, fail, load_or_exit  # noqa: F401
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..outputs.rundir import RunDirError
+from .app import app, fail, load_or_exit
+
+
+@app.command()
+def run(
+    scenario: Optional[Path] = typer.Argument(None, help="scenario YAML file (omit with --resume)"),
+    trials: Optional[int] = typer.Option(None, "--trials", min=1, help="number of trials (default: the scenario's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
+    out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
+    jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
+    chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
+    backend: str = typer.Option("loky", "--backend", help="loky | threading | dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a LocalCluster)"),
+    timeseries: str = typer.Option("full", "--timeseries", help="none | summary (first 100 trials) | full"),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="resume this run directory (runs missing trials)"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing run directory"),
+    report: bool = typer.Option(True, "--report/--no-report", help="write figures and report.html at the end"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
+) -> None:
+    """Run a Monte Carlo campaign: every filter of the scenario on every trial."""
+    from ..mc import engine
+    from ..outputs import tables
+    from .progress import progress_reporter
+
+    if backend not in ("loky", "threading", "dask"):
+        fail(f"--backend must be loky, threading or dask (got {backend!r})")
+    if resume is not None:
+        if scenario is not None:
+            fail("give either a SCENARIO or --resume DIR, not both")
+        try:
+            scn = engine.load_run_scenario(resume)
+        except (engine.RunError, ValueError) as exc:
+            fail(str(exc))
+        out = resume
+    else:
+        if scenario is None:
+            fail("missing SCENARIO (or --resume DIR)")
+        scn = load_or_exit(scenario)
+        out = out or Path("runs") / scn.name
+    opts = engine.RunOptions(trials=trials if resume is None else None, seed=seed if resume is None else None,
+                             jobs=jobs, chunk_size=chunk_size, backend=backend, scheduler=scheduler,
+                             timeseries=timeseries, overwrite=overwrite, resume=resume is not None,
+                             command=list(sys.argv))  # fmt: skip
+    try:
+        with progress_reporter(scn.name, quiet) as prog:
+            res = engine.run(scn, out, opts, prog)
+    except (engine.RunError, RunDirError) as exc:
+        fail(str(exc))
+    if report:
+        from ..outputs import report as rep
+
+        rep.build_run_report(out)
+    if not quiet:
+        pt = res.percentiles
+        for label in dict.fromkeys(pt["filter"]):
+            g = pt[pt["filter"] == label].iloc[0]
+            n, nd = int(g["trials"]), int(g["diverged"])
+            typer.echo(f"\n{label}: per-trial mean errors over t >= {scn.time.error_window_start_s:g} s, "
+                       f"{n - nd}/{n} trials converged ({nd} diverged)")  # fmt: skip
+            typer.echo(tables.format_table(pt, label, "converged"))
+            if nd:
+                typer.echo("all trials (diverged = inf):")
+                typer.echo(tables.format_table(pt, label, "all"))
+        typer.echo(f"\n{res.trials['trial'].nunique()} trials in {res.wall_s:.1f} s -> {out}")
+
+
+@app.command()
+def rerun(
+    run_dir: Path = typer.Argument(..., help="a run directory"),
+    trial: int = typer.Option(..., "--trial", min=0, help="the trial to reproduce"),
+    out: Optional[Path] = typer.Option(None, "--out", help="write the trial's full time series here (Parquet)"),
+) -> None:
+    """Reproduce one trial of a run exactly, from its seed; check it against trials.parquet."""
+    from ..mc import rerun as rr
+
+    try:
+        res = rr.rerun_trial(run_dir, trial, out)
+    except rr.RerunError as exc:
+        fail(str(exc))
+    for line in res.lines:
+        typer.echo(line)
+    if not res.identical:
+        raise typer.Exit(1)

@@ -58,10 +58,15 @@ class LeaderKinematics:
 
 
 def true_to_mean(nu: ArrayLike, e: float) -> Array:
-    """Mean anomaly of true anomaly ``nu`` (rad), continuous across revolutions."""
+    """Mean anomaly of true anomaly ``nu`` (rad), continuous across revolutions.
+
+    The whole revolutions in ``nu`` are kept: ``M(nu + 2 pi k) = M(nu) + 2 pi k``.
+    """
     nu = np.asarray(nu, dtype=float)
-    E = 2.0 * np.arctan2(np.sqrt(1.0 - e) * np.sin(nu / 2.0), np.sqrt(1.0 + e) * np.cos(nu / 2.0))
-    return E - e * np.sin(E)
+    revs = np.floor((nu + np.pi) / (2.0 * np.pi))
+    nuw = nu - 2.0 * np.pi * revs
+    E = 2.0 * np.arctan2(np.sqrt(1.0 - e) * np.sin(nuw / 2.0), np.sqrt(1.0 + e) * np.cos(nuw / 2.0))
+    return E - e * np.sin(E) + 2.0 * np.pi * revs
 
 
 def mean_to_true(M: ArrayLike, e: float, tol: float = 1e-15, max_iter: int = 50) -> Array:

@@ -1,0 +1,63 @@
+"""Progress reporting: a rich bar on a terminal, plain periodic lines otherwise."""
+
+from __future__ import annotations
+
+import sys
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+
+class _Plain:
+    """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, diverged 1``."""
+
+    def __init__(self, label: str, every_s: float = 10.0):
+        self.label, self.every_s = label, every_s
+        self.t0 = time.perf_counter()
+        self.last = -1e9
+        self.start_done: int | None = None
+
+    def __call__(self, done: int, total: int, diverged: int) -> None:
+        now = time.perf_counter()
+        if self.start_done is None:
+            self.start_done = done
+        if done < total and now - self.last < self.every_s and done != self.start_done:
+            return
+        self.last = now
+        el = now - self.t0
+        rate = (done - self.start_done) / el if el > 0 else 0.0
+        eta = f"{(total - done) / rate:.0f} s" if rate > 0 else "?"
+        pct = 100.0 * done / total if total else 100.0
+        print(f"{self.label}: {done}/{total} trials ({pct:.0f}%), {rate:.1f} trials/s, ETA {eta}, diverged {diverged}",
+              file=sys.stderr, flush=True)  # fmt: skip
+
+
+@contextmanager
+def progress_reporter(label: str, quiet: bool = False) -> Iterator:
+    """Yield a ``progress(done, total, diverged)`` callable for the engine."""
+    if quiet:
+        yield None
+        return
+    console = Console(stderr=True)
+    if not console.is_terminal:
+        yield _Plain(label)
+        return
+    cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TextColumn("trials"),
+            TextColumn("{task.fields[rate]}"), TextColumn("ETA"), TimeRemainingColumn(), TimeElapsedColumn(),
+            TextColumn("diverged {task.fields[div]}")]  # fmt: skip
+    with Progress(*cols, console=console, transient=False) as bar:
+        task = bar.add_task(label, total=None, rate="", div=0)
+        t0 = time.perf_counter()
+        first: list[int] = []
+
+        def update(done: int, total: int, diverged: int) -> None:
+            if not first:
+                first.append(done)
+            el = time.perf_counter() - t0
+            rate = (done - first[0]) / el if el > 0 else 0.0
+            bar.update(task, total=total, completed=done, rate=f"{rate:.1f}/s", div=diverged)
+
+        yield update

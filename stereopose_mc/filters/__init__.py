@@ -1,0 +1,1 @@
+"""The relative-navigation filters: the scenario's EKF / IEKF built on ``core.filters``."""

@@ -1,0 +1,120 @@
+"""One filter step of the relative-navigation problem, batched over trials.
+
+This layer binds the generic kernels of ``core.filters`` to the model of MODEL.md:
+
+- prediction from the posterior at ``t_{k-1}``: ``x-`` by RK4 (``substeps`` per step)
+  of ``core.dynamics.f``; ``F`` evaluated at the posterior ``x+(t_{k-1})``;
+  ``Phi = expm(F dt)`` or its Taylor series; ``P- = Phi P Phi^T + Q``;
+- measurement at ``t_k``: per visible feature ``[u_R, v_R, u_L, v_L, du_R, dv_R,
+  du_L, dv_L]`` (+ ``d``), feature-major, then (when enabled) the 3 rows of the inertia
+  pseudo-measurement with observed value 0; ``R`` is diagonal from the filter's own
+  standard deviations;
+- the quaternion is renormalized after every prediction and every update (and at each
+  IEKF iterate); the covariance is not projected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..config.resolve import FilterSetup, Setup
+from ..core import camera, dynamics, jacobians, state as st
+from ..core import filters as kf
+from ..core.inertia import h_pseudo
+from ..core.orbit import leader_kinematics
+
+Array = NDArray[np.float64]
+
+
+def renormalize(x: Array) -> Array:
+    """Copy of ``x`` with its quaternion block normalized."""
+    x = x.copy()
+    q = x[..., st.QUAT]
+    x[..., st.QUAT] = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return x
+
+
+def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
+    """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t``."""
+    lk = leader_kinematics(setup.orbit, t)
+    F = jacobians.F(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)
+    Phi = kf.transition_matrix(F, setup.dt, fs.transition, fs.taylor_order)
+    x_pred = renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
+    return x_pred, kf.predict_covariance(P, Phi, fs.Q_diag)
+
+
+def channel_variances(fs: FilterSetup, disparity: bool) -> Array:
+    """The filter's R diagonal for one feature (8 or 9,)."""
+    v = [fs.sigma_image**2] * 4 + [fs.sigma_flow**2] * 4
+    if disparity:
+        v.append(fs.sigma_disparity**2)
+    return np.asarray(v)
+
+
+@dataclass(frozen=True)
+class StepMeasurement:
+    """What the filter sees at one step, for a batch of trials."""
+
+    y: Array  # (B, m) stacked measurement (pseudo rows observed as 0)
+    alpha: Array  # (B, 3) measured angular acceleration (used only with the pseudo rows)
+    visible: Array  # (N,) bool: features in view at this step
+    t: float
+
+
+def measurement_model(setup: Setup, step: StepMeasurement):
+    """The ``measure(x, rows, jac)`` callable of ``core.filters`` for this step."""
+    lk = leader_kinematics(setup.orbit, step.t)
+    vis = np.flatnonzero(step.visible)
+
+    def measure(x: Array, rows: Array, jac: bool = True):
+        h = camera.h_features(x, setup.baseline, setup.disparity, setup.focal)[:, vis]
+        B = x.shape[0]
+        parts = [h.reshape(B, -1)]
+        Hs = []
+        if jac:
+            Hf = jacobians.H_features(x, setup.baseline, setup.disparity, setup.focal)[:, vis]
+            Hs.append(Hf.reshape(B, -1, x.shape[-1]))
+        if setup.pseudo:
+            a = step.alpha[rows]
+            parts.append(h_pseudo(x, a, lk.nu_dot, lk.nu_ddot))
+            if jac:
+                Hs.append(jacobians.H_pseudo(x, a, lk.nu_dot, lk.nu_ddot))
+        hx = np.concatenate(parts, axis=-1)
+        return hx, (np.concatenate(Hs, axis=-2) if jac else None)
+
+    return measure
+
+
+def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int) -> Array:
+    """The filter's R diagonal ``(m,)`` for ``n_visible`` features (+ pseudo rows)."""
+    r = np.tile(channel_variances(fs, setup.disparity), n_visible)
+    if setup.pseudo:
+        r = np.concatenate([r, np.full(3, fs.sigma_alpha**2)])
+    return r
+
+
+def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
+    """``(B, m)`` from per-feature measurements ``(B, N, C)`` of the visible features."""
+    B = y_feat.shape[0]
+    y = y_feat[:, visible].reshape(B, -1)
+    if pseudo:
+        y = np.concatenate([y, np.zeros((B, 3))], axis=-1)
+    return y
+
+
+def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup) -> kf.Update:
+    """The filter's measurement update (EKF or IEKF) at one step."""
+    measure = measurement_model(setup, step)
+    R = measurement_noise(fs, setup, int(step.visible.sum()))
+    y = step.y[rows]
+    if fs.kind == "ekf":
+        u = kf.ekf_update(x, P, y, measure, R, rows)
+        return kf.Update(renormalize(u.x), u.P, u.nu, u.S, u.iterations, u.converged)
+    return kf.iekf_update(
+        x, P, y, measure, R, rows,
+        tol=fs.tolerance, max_iter=fs.max_iterations, step_control=fs.step_control,
+        stopping=fs.stopping, renormalize=renormalize,
+    )  # fmt: skip

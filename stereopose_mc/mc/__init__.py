@@ -1,0 +1,1 @@
+"""Monte Carlo: chunks of trials stepping through time together, and the engine."""

@@ -1,0 +1,58 @@
+"""Rerun one trial of a run exactly, from the run's scenario and the trial's seed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..outputs import rundir
+from . import engine
+from .trial import ERROR_NAMES
+
+
+class RerunError(Exception):
+    pass
+
+
+@dataclass
+class RerunResult:
+    trials: pd.DataFrame
+    identical: bool
+    lines: list[str] = field(default_factory=list)
+
+
+def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResult:
+    """Recompute trial ``trial`` alone; compare with the run's ``trials.parquet`` row(s)."""
+    try:
+        scn = engine.load_run_scenario(run_dir)
+    except (engine.RunError, ValueError) as exc:
+        raise RerunError(str(exc)) from None
+    if trial >= scn.trials:
+        raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
+    co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full")
+    lines = [f"{scn.name}: trial {trial} (root seed {scn.seed}, SeedSequence spawn key ({trial},))"]
+    identical = True
+    stored = None
+    tp = run_dir / "trials.parquet"
+    if tp.is_file():
+        stored = pd.read_parquet(tp)
+        stored = stored[stored["trial"] == trial].reset_index(drop=True)
+    for _, row in co.trials_df.iterrows():
+        errs = ", ".join(f"{n}={row[n]:.4g}" for n in ERROR_NAMES)
+        status = "diverged at step %d (%s)" % (row["diverged_step"], row["diverged_reason"]) if row["diverged"] else "ok"
+        lines.append(f"  {row['filter']}: {errs}; {status}")
+    if stored is not None and len(stored):
+        same = co.trials_df.reset_index(drop=True).equals(stored)
+        identical = bool(same)
+        lines.append("identical to trials.parquet" if same else "DIFFERS from trials.parquet")
+    else:
+        lines.append("(trial not in trials.parquet yet: nothing to compare)")
+    if out is not None:
+        out = Path(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        rundir.write_parquet(out, co.timeseries_df, {"stereopose_mc.table": "timeseries", "trial": str(trial)})
+        lines.append(f"time series -> {out}")
+    return RerunResult(co.trials_df, identical, lines)

@@ -1,0 +1,248 @@
+"""A chunk of Monte Carlo trials: initial draws, the filter loop, per-trial summaries.
+
+All trials of a chunk step through time together (arrays ``(B, n)``, ``(B, n, n)``).
+Each filter of the scenario sees the same initial estimate and the same measurements
+in a trial (paired comparison). A trial that diverges is frozen at the step it
+diverged: it is marked with the step and the reason, its later errors are NaN, and it
+never stops the others.
+
+Divergence (documented in docs/filters.md): a non-finite state or covariance, a
+covariance that is not positive definite (Cholesky fails), or an error beyond the
+scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..config.resolve import FilterSetup, Setup
+from ..core import quaternion as qt
+from ..core import state as st
+from ..core import filters as kf
+from ..filters import relnav
+from ..sim import measurements as meas
+from ..sim.truth import Truth
+
+Array = NDArray[np.float64]
+RAD2DEG = 180.0 / np.pi
+ERROR_NAMES = ("e_rho", "e_rho_dot", "e_omega", "e_theta", "e_k1", "e_k2")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    rho_m: float = 1000.0
+    rho_dot_mps: float = 100.0
+    omega_degps: float = 180.0
+    k: float = 20.0
+
+
+def errors(x_hat: Array, x_true: Array) -> Array:
+    """The six errors ``(..., 6)``: m, m/s, deg/s, deg, -, - (MODEL.md, thesis 6.46-6.60)."""
+    N = st.n_points(x_hat.shape[-1])
+    ks = st.k_slice(N)
+    d = x_hat - x_true
+    return np.stack(
+        [
+            np.linalg.norm(d[..., st.RHO], axis=-1),
+            np.linalg.norm(d[..., st.RHO_DOT], axis=-1),
+            np.linalg.norm(d[..., st.OMEGA], axis=-1) * RAD2DEG,
+            qt.error_angle(x_true[..., st.QUAT], x_hat[..., st.QUAT]) * RAD2DEG,
+            np.abs(d[..., ks][..., 0]),
+            np.abs(d[..., ks][..., 1]),
+        ],
+        axis=-1,
+    )
+
+
+def state_error(x_hat: Array, x_true: Array) -> Array:
+    """``x_hat - x_true`` with the true quaternion's sign aligned to the estimate's."""
+    xt = np.broadcast_to(x_true, x_hat.shape).copy()
+    s = np.sign(np.sum(xt[..., st.QUAT] * x_hat[..., st.QUAT], axis=-1))
+    xt[..., st.QUAT] *= np.where(s == 0, 1.0, s)[..., None]
+    return x_hat - xt
+
+
+def positive_definite(P: Array) -> Array:
+    """Per-trial Cholesky success ``(B,)``."""
+    try:
+        np.linalg.cholesky(P)
+        return np.ones(P.shape[0], bool)
+    except np.linalg.LinAlgError:
+        out = np.zeros(P.shape[0], bool)
+        for i in range(P.shape[0]):
+            try:
+                np.linalg.cholesky(P[i])
+                out[i] = True
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+@dataclass
+class FilterRun:
+    """Outputs of one filter over a chunk (``B`` trials, ``K+1`` steps)."""
+
+    label: str
+    errors: Array  # (B, K+1, 6); NaN after divergence
+    nees: Array  # (B, K+1)
+    nis: Array  # (B, K+1); NaN at step 0
+    nis_dof: Array  # (K+1,) measurement dimension
+    iterations: Array  # (B, K+1) int; 0 at step 0
+    converged: Array  # (B, K+1) bool
+    diverged_step: Array  # (B,) int, -1 if not diverged
+    diverged_reason: list[str] = field(default_factory=list)
+    runtime_s: Array | None = None  # (B,) chunk wall time shared equally
+    x_final: Array | None = None  # (B, n)
+
+
+def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
+    """Reason of divergence per trial ('' when healthy)."""
+    B = x.shape[0]
+    reasons = [""] * B
+    finite = np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-1, -2))
+    pd = np.zeros(B, bool)
+    if finite.any():
+        pd[finite] = positive_definite(P[finite])
+    lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
+    over = err > lim
+    names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
+    for i in range(B):
+        if not finite[i]:
+            reasons[i] = "non-finite state or covariance"
+        elif not pd[i]:
+            reasons[i] = "covariance not positive definite"
+        elif over[i].any():
+            j = int(np.argmax(over[i]))
+            reasons[i] = f"error bound exceeded: e_{names[j]} = {err[i, j]:.3g} > {lim[j]:g}"
+    return reasons
+
+
+def run_filter(
+    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds
+) -> FilterRun:
+    """Run one filter over a chunk of trials.
+
+    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``. Updates at
+    ``t_k, k >= 1``; step 0 holds the initial estimate's errors.
+    """
+    B, n = x0_hat.shape
+    K = setup.steps
+    err = np.full((B, K + 1, 6), np.nan)
+    nees = np.full((B, K + 1), np.nan)
+    nis = np.full((B, K + 1), np.nan)
+    nis_dof = np.zeros(K + 1, int)
+    its = np.zeros((B, K + 1), int)
+    conv = np.zeros((B, K + 1), bool)
+    div_step = np.full(B, -1)
+    reasons = [""] * B
+    x = x0_hat.copy()
+    P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
+    err[:, 0] = errors(x, truth.x[0])
+    nees[:, 0] = _nees(x, P, truth.x[0])
+    active = np.arange(B)
+    for k in range(1, K + 1):
+        if active.size == 0:
+            break
+        with np.errstate(all="ignore"):
+            xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+        vis = visible[k]
+        step = relnav.StepMeasurement(
+            y=relnav.stack_measurement(y_feat[:, k], vis, setup.pseudo), alpha=alpha[:, k], visible=vis, t=truth.t[k]
+        )
+        with np.errstate(all="ignore"):
+            u, failed = _robust_update(xa, Pa, step, active, fs, setup)
+            e = errors(u.x, truth.x[k])
+            bad = _check(u.x, u.P, e, bounds)
+        for j in np.flatnonzero(failed):
+            bad[j] = failed[j]
+        x[active], P[active] = u.x, u.P
+        err[active, k] = e
+        its[active, k], conv[active, k] = u.iterations, u.converged
+        nis_dof[k] = u.nu.shape[-1]
+        with np.errstate(all="ignore"):
+            try:
+                nis[active, k] = kf_mahalanobis(u.nu, u.S)
+                nees[active, k] = _nees(u.x, u.P, truth.x[k])
+            except np.linalg.LinAlgError:
+                pass
+        keep = np.ones(active.size, bool)
+        for j, i in enumerate(active):
+            if bad[j]:
+                div_step[i], reasons[i], keep[j] = k, bad[j], False
+                err[i, k:] = np.nan
+        active = active[keep]
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x)
+
+
+def _robust_update(xa, Pa, step, rows, fs, setup):
+    """The batched update; if linear algebra fails for the batch, trial by trial.
+
+    Returns the update and, per trial, the failure reason ('' when it went through).
+    A trial whose own update fails gets NaN state and covariance.
+    """
+    try:
+        return relnav.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+    except np.linalg.LinAlgError:
+        pass
+    parts, reasons = [], []
+    for j in range(rows.size):
+        try:
+            parts.append(relnav.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
+            reasons.append("")
+        except np.linalg.LinAlgError as exc:
+            parts.append(None)
+            reasons.append(f"linear algebra failure in the update: {exc}")
+    ok = next(p for p in parts if p is not None) if any(p is not None for p in parts) else None
+    m = ok.nu.shape[-1] if ok is not None else step.y.shape[-1]
+    n = xa.shape[-1]
+
+    def cat(attr, shape, fill):
+        return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
+
+    u = kf.Update(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
+                  cat("S", (m, m), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
+    return u, reasons
+
+
+def kf_mahalanobis(v: Array, S: Array) -> Array:
+    from ..core.filters import mahalanobis2
+
+    return mahalanobis2(v, S)
+
+
+def _nees(x: Array, P: Array, x_true: Array) -> Array:
+    """``e^T P^-1 e`` of the full state error (q sign-aligned)."""
+    from ..core.filters import mahalanobis2
+
+    with np.errstate(all="ignore"):
+        try:
+            return mahalanobis2(state_error(x, x_true), P)
+        except np.linalg.LinAlgError:
+            return np.full(x.shape[0], np.nan)
+
+
+@dataclass
+class ChunkResult:
+    trials: Array  # (B,) trial indices
+    runs: list[FilterRun]
+    runtime_s: float
+
+
+def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
+              filters: list[FilterSetup], bounds: Bounds) -> ChunkResult:
+    """Draw the chunk's trials and run every filter on the same draws."""
+    t0 = time.perf_counter()
+    draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
+    noisy = meas.noisy(setup, exact, draws)
+    x0_hat = meas.initial_estimates(setup, draws)
+    runs = []
+    for fs in filters:
+        t1 = time.perf_counter()
+        r = run_filter(x0_hat, setup, truth, noisy.y, noisy.alpha, exact.visible, fs, bounds)
+        r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
+        runs.append(r)
+    return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0)

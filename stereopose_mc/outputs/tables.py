@@ -1,0 +1,160 @@
+"""Result tables: per-trial rows, time series, percentile tables.
+
+Percentiles use numpy's ``inverted_cdf`` method, which always returns the value of an
+actual trial. Diverged trials are handled twice: in the ``all`` population their
+errors count as ``+inf`` (so a high percentile shows that some trials were lost), in
+the ``converged`` population they are left out and counted in ``diverged``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ..mc.trial import ERROR_NAMES, ChunkResult
+
+ERROR_UNITS = {"e_rho": "m", "e_rho_dot": "m/s", "e_omega": "deg/s", "e_theta": "deg", "e_k1": "-", "e_k2": "-"}
+ERROR_LABELS = {"e_rho": "rho [m]", "e_rho_dot": "rho_dot [m/s]", "e_omega": "omega [deg/s]",
+                "e_theta": "theta [deg]", "e_k1": "k1 [-]", "e_k2": "k2 [-]"}  # fmt: skip
+TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged"]
+
+
+def window_mask(t: np.ndarray, start: float) -> np.ndarray:
+    return t >= start - 1e-9
+
+
+def row_nanmean(a: np.ndarray) -> np.ndarray:
+    """Mean over the last axis ignoring NaN (NaN for an all-NaN row), row by row.
+
+    Each row is reduced on its own as a contiguous 1-D array, so the result of a trial
+    does not depend on how many trials share the array (numpy sums contiguous and
+    strided axes in different orders, which changes the last bits).
+    """
+    flat = np.ascontiguousarray(a, dtype=float).reshape(-1, a.shape[-1])
+    out = np.full(flat.shape[0], np.nan)
+    for i, row in enumerate(flat):
+        v = row[~np.isnan(row)]
+        if v.size:
+            out[i] = v.mean()
+    return out.reshape(a.shape[:-1])
+
+
+def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: int) -> pd.DataFrame:
+    """One row per trial x filter (deterministic columns only; timing is separate)."""
+    w = window_mask(t, window_start)
+    frames = []
+    for r in chunk.runs:
+        B = len(chunk.trials)
+        div = r.diverged_step >= 0
+        means = row_nanmean(np.moveaxis(r.errors[:, w], 1, -1))
+        it_mean = row_nanmean(np.where(r.iterations[:, 1:] > 0, r.iterations[:, 1:], np.nan))
+        nees_mean = row_nanmean(r.nees[:, w])
+        nis_mean = row_nanmean(r.nis[:, w])
+        means[div] = np.nan
+        final = r.errors[:, -1]
+        d = {"trial": chunk.trials.astype(np.int64), "filter": [r.label] * B, "seed": np.full(B, seed, np.int64)}
+        for j, name in enumerate(ERROR_NAMES):
+            d[name] = means[:, j]
+        for j, name in enumerate(ERROR_NAMES):
+            d[f"final_{name}"] = final[:, j]
+        d["diverged"] = div
+        d["diverged_step"] = r.diverged_step.astype(np.int64)
+        d["diverged_reason"] = r.diverged_reason
+        d["iterations_mean"] = it_mean
+        d["iekf_unconverged_steps"] = np.sum((r.iterations[:, 1:] > 0) & ~r.converged[:, 1:], axis=1).astype(np.int64)
+        d["nees_mean"] = nees_mean
+        d["nis_mean"] = nis_mean
+        frames.append(pd.DataFrame(d))
+    return pd.concat(frames, ignore_index=True)
+
+
+def timing_frame(chunk: ChunkResult, chunk_id: int) -> pd.DataFrame:
+    rows = []
+    for r in chunk.runs:
+        rows.append(pd.DataFrame({"trial": chunk.trials.astype(np.int64), "filter": r.label,
+                                  "runtime_s": r.runtime_s, "chunk": chunk_id}))  # fmt: skip
+    return pd.concat(rows, ignore_index=True)
+
+
+def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None = None) -> pd.DataFrame:
+    """Per trial, filter and step: the six errors, NEES, NIS, IEKF iterations."""
+    frames = []
+    sel = np.ones(len(chunk.trials), bool) if keep is None else keep
+    B = int(sel.sum())
+    K1 = t.size
+    if B == 0:
+        return pd.DataFrame({c: [] for c in TS_COLUMNS})
+    for r in chunk.runs:
+        d = {
+            "trial": np.repeat(chunk.trials[sel].astype(np.int64), K1),
+            "filter": [r.label] * (B * K1),
+            "step": np.tile(np.arange(K1, dtype=np.int32), B),
+            "t": np.tile(t, B),
+        }
+        for j, name in enumerate(ERROR_NAMES):
+            d[name] = r.errors[sel, :, j].reshape(-1)
+        d["nees"] = r.nees[sel].reshape(-1)
+        d["nis"] = r.nis[sel].reshape(-1)
+        d["nis_dof"] = np.tile(r.nis_dof.astype(np.int16), B)
+        d["iterations"] = r.iterations[sel].reshape(-1).astype(np.int16)
+        d["converged"] = r.converged[sel].reshape(-1)
+        frames.append(pd.DataFrame(d))
+    return pd.concat(frames, ignore_index=True)
+
+
+def percentile_table(trials: pd.DataFrame, percentiles: list[float]) -> pd.DataFrame:
+    """Percentiles of the per-trial window means, per filter and population."""
+    rows = []
+    for label, g in trials.groupby("filter", sort=False):
+        div = g["diverged"].to_numpy()
+        n, nd = len(g), int(div.sum())
+        for pop in ("all", "converged"):
+            vals = {}
+            for name in ERROR_NAMES:
+                v = g[name].to_numpy(dtype=float)
+                if pop == "all":
+                    v = np.where(div | ~np.isfinite(v), np.inf, v)
+                else:
+                    v = v[~div & np.isfinite(v)]
+                vals[name] = v
+            for p in percentiles:
+                row = {"filter": label, "population": pop, "percentile": float(p)}
+                for name in ERROR_NAMES:
+                    v = vals[name]
+                    row[name] = float(np.percentile(v, p, method="inverted_cdf")) if v.size else np.nan
+                row["trials"] = n if pop == "all" else n - nd
+                row["diverged"] = nd
+                rows.append(row)
+    cols = ["filter", "population", "percentile", *ERROR_NAMES, "trials", "diverged"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def _fmt(v: float) -> str:
+    if not np.isfinite(v):
+        return "inf" if v > 0 else "nan"
+    return f"{v:.3g}"
+
+
+def format_table(pt: pd.DataFrame, label: str, population: str = "converged", markdown: bool = False) -> str:
+    """The thesis's layout: rows 50/70/90/100, columns rho, rho_dot, omega, theta, k1, k2."""
+    g = pt[(pt["filter"] == label) & (pt["population"] == population)]
+    head = ["pct"] + [ERROR_LABELS[n] for n in ERROR_NAMES]
+    body = [[f"{p:g}"] + [_fmt(r[n]) for n in ERROR_NAMES] for p, r in zip(g["percentile"], g.to_dict("records"))]
+    if markdown:
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(b) + " |" for b in body]
+        return "\n".join(lines)
+    widths = [max(len(x[i]) for x in [head] + body) for i in range(len(head))]
+    fmt = lambda row: "  ".join(c.rjust(w) for c, w in zip(row, widths))  # noqa: E731
+    return "\n".join([fmt(head), *map(fmt, body)])
+
+
+def percentiles_markdown(pt: pd.DataFrame) -> str:
+    out = []
+    for label in dict.fromkeys(pt["filter"]):
+        g = pt[pt["filter"] == label].iloc[0]
+        n, nd = int(g["trials"]), int(g["diverged"])
+        out.append(f"## {label}: {n - nd} of {n} trials converged ({nd} diverged)\n")
+        out.append("Converged trials only:\n\n" + format_table(pt, label, "converged", markdown=True) + "\n")
+        out.append("All trials (a diverged trial counts as +inf):\n\n" + format_table(pt, label, "all", markdown=True) + "\n")
+    return "\n".join(out)

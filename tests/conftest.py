@@ -1,0 +1,16 @@
+"""Shared fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from scenarios import write_scenario
+
+
+@pytest.fixture
+def small_caseB(tmp_path) -> Path:
+    """Case B cut to 6 trials of 20 s (window from 5 s)."""
+    return write_scenario(
+        tmp_path / "small.yaml", trials=6, time={"dt_s": 1.0, "duration_s": 20.0, "error_window_start_s": 5.0}
+    )

@@ -1,0 +1,136 @@
+"""The Monte Carlo engine: determinism across jobs/chunks/backends, resume, refusal."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from stereopose_mc.cli.main import app
+
+from scenarios import write_scenario
+
+runner = CliRunner()
+SHORT = {"dt_s": 1.0, "duration_s": 20.0, "error_window_start_s": 5.0}
+
+
+def spmc(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def run_ok(*args):
+    r = spmc(*args, "--quiet", "--no-report")
+    assert r.exit_code == 0, r.output
+    return r
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scn")
+    return write_scenario(d / "s.yaml", trials=8, time=SHORT)
+
+
+@pytest.fixture(scope="module")
+def reference(scenario, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", 1, "--chunk-size", 8)
+    return out
+
+
+def same_bytes(a: Path, b: Path, names=("trials.parquet", "timeseries.parquet", "percentiles.csv")):
+    for n in names:
+        assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
+@pytest.mark.parametrize("jobs,chunk", [(2, 3), (1, 1), (2, 5)])
+def test_same_bytes_for_any_jobs_and_chunk_size(scenario, reference, tmp_path, jobs, chunk):
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", jobs, "--chunk-size", chunk)
+    same_bytes(reference, out)
+
+
+def test_threading_backend_same_bytes(scenario, reference, tmp_path):
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", 2, "--chunk-size", 4, "--backend", "threading")
+    same_bytes(reference, out)
+
+
+def test_run_directory_contents(reference):
+    for n in ("config.yaml", "manifest.json", "trials.parquet", "timeseries.parquet", "timing.parquet",
+              "percentiles.csv", "percentiles.md", "percentiles.parquet"):  # fmt: skip
+        assert (reference / n).is_file(), n
+    t = pd.read_parquet(reference / "trials.parquet")
+    assert list(t["trial"].unique()) == list(range(8))
+    assert set(t["filter"]) == {"iekf", "ekf"}
+    for col in ("trial", "filter", "seed", "e_rho", "e_rho_dot", "e_omega", "e_theta", "e_k1", "e_k2",
+                "final_e_rho", "diverged", "diverged_step", "diverged_reason", "iterations_mean"):  # fmt: skip
+        assert col in t.columns
+    import pyarrow.parquet as pq
+
+    md = pq.read_schema(reference / "trials.parquet").metadata
+    assert md[b"stereopose_mc.scenario"] == b"caseB"
+    assert b"stereopose_mc.schema_version" in md
+
+
+def test_existing_run_directory_is_not_overwritten(scenario, reference):
+    before = (reference / "trials.parquet").read_bytes()
+    r = spmc("run", scenario, "--out", reference, "--quiet")
+    assert r.exit_code == 2
+    assert "--overwrite" in r.output
+    assert (reference / "trials.parquet").read_bytes() == before
+
+
+def test_resume_with_an_edited_scenario_is_refused(scenario, tmp_path):
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out)
+    cfg = out / "config.yaml"
+    cfg.write_text(cfg.read_text().replace("seed: 2014", "seed: 2015"))
+    r = spmc("run", "--resume", out, "--quiet")
+    assert r.exit_code == 2
+    assert "scenario differs" in r.output
+
+
+def test_killed_run_resumes_to_the_same_bytes(tmp_path, reference):
+    scn = write_scenario(tmp_path / "s.yaml", trials=8, time=SHORT)
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "stereopose_mc.cli.main", "run", str(scn), "--out", str(out), "--chunk-size", "1",
+           "--quiet", "--no-report"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if len(list((out / "chunks").glob("trials-*.parquet"))) >= 3 if (out / "chunks").is_dir() else False:
+            break
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (out / "trials.parquet").exists(), "the run finished before it could be killed"
+    done = len(list((out / "chunks").glob("trials-*.parquet")))
+    assert 3 <= done < 8
+    r = spmc("run", "--resume", out, "--quiet", "--no-report")
+    assert r.exit_code == 0, r.output
+    same_bytes(reference, out)
+    assert not list((out / "chunks").glob(".*.tmp"))
+
+
+def test_rerun_reproduces_a_trial(reference, tmp_path):
+    r = spmc("rerun", reference, "--trial", 5, "--out", tmp_path / "t5.parquet")
+    assert r.exit_code == 0, r.output
+    assert "identical to trials.parquet" in r.output
+    ts = pd.read_parquet(tmp_path / "t5.parquet")
+    ref = pd.read_parquet(reference / "timeseries.parquet")
+    ref = ref[ref["trial"] == 5].reset_index(drop=True)
+    pd.testing.assert_frame_equal(ts.reset_index(drop=True), ref)
+
+
+def test_dask_local_cluster_equals_local_run(scenario, reference, tmp_path):
+    pytest.importorskip("dask.distributed")
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", 2, "--chunk-size", 3, "--backend", "dask")
+    same_bytes(reference, out)
