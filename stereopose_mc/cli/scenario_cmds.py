@@ -15,7 +15,8 @@ from .app import app, fail, load_or_exit
 
 @app.command()
 def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")) -> None:
-    """Check scenario files; one line per problem (file:line: key.path: message), exit 2 on any."""
+    """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
+    (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
     problems: list[str] = []
     for f in files:
         try:
@@ -32,7 +33,7 @@ def simulate(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Optional[Path] = typer.Option(None, "--out", help="output directory (default runs/<name>-sim)"),
     no_noise: bool = typer.Option(False, "--no-noise", help="write the exact measurements"),
-    seed: Optional[int] = typer.Option(None, "--seed", help="root seed (default: the scenario's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
@@ -40,6 +41,10 @@ def simulate(
 
     scn = load_or_exit(scenario)
     out = out or Path("runs") / f"{scn.name}-sim"
+    if out.exists() and not out.is_dir():
+        fail(f"{out} exists and is not a directory")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        fail(f"{out} already exists and is not empty; pass --overwrite to replace it")
     try:
         s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv)
     except RunDirError as exc:

@@ -1,17 +1,42 @@
-"""Load scenario YAML files with errors that name the file, the line and the key path."""
+"""Load scenario YAML files with errors that name the file, the line and the key path.
+
+Every problem is reported as one line ``FILE:LINE: key.path: message`` (see
+docs/scenarios.md, "Error messages"). The line is the 1-based line of the offending
+key in the YAML text (of the sequence item, for list entries); for a missing key it is
+the line of the parent key (1 at top level). Problems that concern the whole file (a
+YAML syntax error, an empty or non-mapping file) have no key path: ``FILE:LINE: message``;
+a file that cannot be read has no line either: ``FILE: message``.
+
+All problems of a file are collected: YAML duplicate keys (found while walking the
+composed node tree, since PyYAML silently keeps the last), every pydantic validation
+error, and the cross-key checks of ``_semantic_checks`` (run on whatever parts of the
+file validate on their own).
+"""
 
 from __future__ import annotations
 
+import difflib
+import math
+import types
+import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from ..core import quaternion as qt
-from .schema import Scenario
+from .schema import EKFConfig, IEKFConfig, MeasurementsConfig, Scenario, Vec3
+
+Loc = tuple[Any, ...]
+
+#: The filter types a ``filters`` entry may name (the discriminator tags of the union).
+FILTER_MODELS: dict[str, type[BaseModel]] = {
+    typing.get_args(m.model_fields["type"].annotation)[0]: m for m in (IEKFConfig, EKFConfig)
+}
+FILTER_TYPES: tuple[str, ...] = tuple(FILTER_MODELS)
 
 
 @dataclass(frozen=True)
@@ -37,101 +62,376 @@ class ScenarioError(Exception):
         super().__init__("\n".join(str(p) for p in problems))
 
 
-def _node_at(root: yaml.Node | None, loc: tuple[Any, ...]) -> yaml.Node | None:
-    """The deepest YAML node along ``loc`` (pydantic's error location)."""
-    node = root
-    for key in loc:
-        if isinstance(node, yaml.MappingNode):
-            nxt = None
-            for k, v in node.value:
-                if isinstance(k, yaml.ScalarNode) and k.value == str(key):
-                    nxt = v
-                    if isinstance(key, str) and key not in {"0", "1"}:
-                        pass
-                    break
-            if nxt is None:
-                # unknown keys: point at the key itself
-                return node
-            node = nxt
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int):
-            if 0 <= key < len(node.value):
-                node = node.value[key]
-            else:
-                return node
-        else:
-            # a discriminated-union tag ('iekf', 'ekf') or a scalar: stay here
+# --------------------------------------------------------------------------- YAML
+
+
+def _walk(node: yaml.Node, path: Loc = (), seen: set[int] | None = None) -> Iterator[tuple[Loc, yaml.Node, int | None]]:
+    """Every node below ``node`` with its key path and the line of its key (or list entry); duplicates included."""
+    seen = set() if seen is None else seen
+    if id(node) in seen:  # aliases share nodes
+        return
+    seen.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        for k, v in node.value:
+            if isinstance(k, yaml.ScalarNode):
+                sub = path + (k.value,)
+                yield sub, v, k.start_mark.line + 1
+                yield from _walk(v, sub, seen)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, v in enumerate(node.value):
+            yield path + (i,), v, v.start_mark.line + 1
+            yield from _walk(v, path + (i,), seen)
+
+
+def duplicate_keys(root: yaml.Node | None) -> list[tuple[Loc, int, int]]:
+    """``(key path, first line, repeated line)`` of every key repeated within one mapping."""
+    if root is None:
+        return []
+    out: list[tuple[Loc, int, int]] = []
+    for path, node in [((), root)] + [(p, n) for p, n, _ in _walk(root)]:
+        if not isinstance(node, yaml.MappingNode):
             continue
-    return node
+        first: dict[str, int] = {}
+        for k, _ in node.value:
+            if not isinstance(k, yaml.ScalarNode) or k.tag == "tag:yaml.org,2002:merge":
+                continue
+            line = k.start_mark.line + 1
+            if k.value in first:
+                out.append((path + (k.value,), first[k.value], line))
+            else:
+                first[k.value] = line
+    return out
 
 
-def _key_line(root: yaml.Node | None, loc: tuple[Any, ...]) -> int | None:
-    """Line (1-based) of the key or item that ``loc`` points at."""
-    if not loc:
-        return 1
-    parent = _node_at(root, loc[:-1])
-    last = loc[-1]
-    if isinstance(parent, yaml.MappingNode):
-        for k, _ in parent.value:
-            if isinstance(k, yaml.ScalarNode) and k.value == str(last):
-                return k.start_mark.line + 1
-    node = _node_at(root, loc)
-    return node.start_mark.line + 1 if node is not None else None
+def _compose(text: str, file: str) -> tuple[yaml.Node | None, Any, list[tuple[Loc, int, int]]]:
+    """The composed node tree, the constructed data and the duplicate keys of one YAML document.
+
+    Duplicates are looked for before construction, which rewrites mappings with merge keys (``<<``).
+    """
+    loader = yaml.SafeLoader(text)
+    try:
+        root = loader.get_single_node()
+        dups = duplicate_keys(root)
+        data = loader.construct_document(root) if root is not None else None
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else None
+        msg = exc.problem or exc.context or "invalid YAML"
+        if exc.context and exc.problem:
+            cm = exc.context_mark
+            msg = f"{exc.problem} ({exc.context}{f' at line {cm.line + 1}' if cm is not None else ''})"
+        raise ScenarioError([Problem(file, line, "", f"YAML syntax error: {msg}")]) from None
+    except yaml.YAMLError as exc:  # pragma: no cover - every PyYAML parse error is marked
+        raise ScenarioError([Problem(file, None, "", f"YAML error: {exc}")]) from None
+    finally:
+        loader.dispose()
+    return root, data, dups
 
 
-def _clean_loc(loc: tuple[Any, ...]) -> tuple[Any, ...]:
-    # drop the discriminator tags pydantic inserts into union locations
-    return tuple(p for p in loc if p not in ("iekf", "ekf"))
+def duplicate_message(first: int, again: int) -> str:
+    where = f"twice on line {again}" if first == again else f"first at line {first}, again at line {again}"
+    return f"duplicate key ({where}); YAML would silently keep the last"
 
 
-def _path(loc: tuple[Any, ...]) -> str:
+class Locator:
+    """Maps a key path (pydantic's error location) to a line of the YAML text."""
+
+    def __init__(self, root: yaml.Node | None):
+        self.root = root
+
+    def _step(self, node: yaml.Node, key: Any) -> tuple[yaml.Node, int] | None:
+        if isinstance(node, yaml.MappingNode):
+            hit = None
+            for k, v in node.value:  # the last of duplicate keys is the one YAML keeps
+                if isinstance(k, yaml.ScalarNode) and k.value == str(key):
+                    hit = (v, k.start_mark.line + 1)
+            return hit
+        if isinstance(node, yaml.SequenceNode) and isinstance(key, int) and 0 <= key < len(node.value):
+            v = node.value[key]
+            return v, v.start_mark.line + 1
+        return None
+
+    def line(self, loc: Loc) -> int:
+        """Line of the key (or item) ``loc``; if it is absent, the line of its deepest present parent (1 at top)."""
+        node, line = self.root, 1
+        for key in loc:
+            nxt = self._step(node, key) if node is not None else None
+            if nxt is None:
+                break
+            node, line = nxt
+        return line
+
+
+# ----------------------------------------------------------------- pydantic errors
+
+
+def clean_loc(loc: Loc) -> Loc:
+    """Drop the discriminator tag pydantic inserts after ``filters.K`` (``filters.0.iekf.x`` -> ``filters.0.x``)."""
+    out: list[Any] = []
+    for i, p in enumerate(loc):
+        if i == 2 and loc[0] == "filters" and isinstance(loc[1], int) and p in FILTER_TYPES:
+            continue
+        out.append(p)
+    return tuple(out)
+
+
+def path_str(loc: Loc) -> str:
     return ".".join(str(p) for p in loc)
+
+
+def _is_union(tp: Any) -> bool:
+    return typing.get_origin(tp) in (typing.Union, types.UnionType)
+
+
+def _unwrap(tp: Any) -> list[type[BaseModel]]:
+    """The model classes reachable through ``Annotated``, ``Optional``, ``list`` and unions."""
+    origin = typing.get_origin(tp)
+    if origin is typing.Annotated:
+        return _unwrap(typing.get_args(tp)[0])
+    if origin is list or _is_union(tp):
+        return [m for a in typing.get_args(tp) for m in _unwrap(a)]
+    return [tp] if isinstance(tp, type) and issubclass(tp, BaseModel) else []
+
+
+def _pick(models: list[type[BaseModel]], value: Any) -> type[BaseModel] | None:
+    """The one model among ``models`` (of a discriminated union: the one whose ``type`` matches the value's)."""
+    if len(models) == 1:
+        return models[0]
+    tag = value.get("type") if isinstance(value, dict) else None
+    for m in models:
+        f = m.model_fields.get("type")
+        if f is not None and tag in typing.get_args(f.annotation):
+            return m
+    return None
+
+
+def _schema_at(loc: Loc, data: Any) -> tuple[Any, Any]:
+    """The schema type expected at ``loc`` (``None`` if ``loc`` is not in the schema) and the data there."""
+    tp: Any = Scenario
+    value = data
+    for key in loc:
+        while typing.get_origin(tp) is typing.Annotated:
+            tp = typing.get_args(tp)[0]
+        if isinstance(key, int):  # a list item has the list's element type
+            args = typing.get_args(tp)
+            if typing.get_origin(tp) is not list or not args:
+                return None, None
+            tp = args[0]
+            value = value[key] if isinstance(value, list) and 0 <= key < len(value) else None
+            continue
+        model = _pick(_unwrap(tp), value)
+        field = model.model_fields.get(str(key)) if model is not None else None
+        if field is None:
+            return None, None
+        tp = field.annotation
+        value = value.get(key) if isinstance(value, dict) else None
+    return tp, value
+
+
+def model_at(loc: Loc, data: Any) -> type[BaseModel] | None:
+    """The schema model that the mapping at ``loc`` is validated against (``None`` if unknown)."""
+    tp, value = _schema_at(loc, data)
+    return _pick(_unwrap(tp), value) if tp is not None else None
+
+
+def _leaf_types(tp: Any) -> set[Any]:
+    origin = typing.get_origin(tp)
+    if origin is typing.Annotated:
+        return _leaf_types(typing.get_args(tp)[0])
+    if _is_union(tp):
+        return {t for a in typing.get_args(tp) for t in _leaf_types(a)}
+    return {tp}
+
+
+def booleans_as_numbers(root: yaml.Node | None, data: Any) -> list[tuple[Loc, int, str]]:
+    """YAML booleans (``true``, ``yes``, ``on``) where the schema wants a number.
+
+    pydantic's lax mode would silently read them as 1 and 0.
+    """
+    out = []
+    if root is None:
+        return out
+    for loc, node, line in _walk(root):
+        if isinstance(node, yaml.ScalarNode) and node.tag == "tag:yaml.org,2002:bool":
+            leaves = _leaf_types(_schema_at(loc, data)[0])
+            if leaves & {int, float} and bool not in leaves:
+                out.append((loc, line or 1, f"must be a number, not a boolean (got {node.value!r})"))
+    return out
+
+
+def _known_keys(parent: Loc, data: Any) -> list[str]:
+    """Field names allowed in the mapping at ``parent``."""
+    m = model_at(parent, data)
+    return list(m.model_fields) if m is not None else []
+
+
+def _short(value: Any) -> str:
+    s = repr(value)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def error_message(err: dict[str, Any], loc: Loc, data: Any) -> tuple[Loc, str]:
+    """A one-line message (and possibly a refined location) for one pydantic error."""
+    kind, msg, value = err["type"], err["msg"], err.get("input")
+    tags = ", ".join(repr(t) for t in FILTER_TYPES)
+    if kind == "extra_forbidden":
+        close = difflib.get_close_matches(str(loc[-1]), _known_keys(loc[:-1], data), n=1, cutoff=0.6)
+        return loc, "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
+    if kind == "missing":
+        return loc, "required key is missing"
+    if kind == "union_tag_invalid":
+        tag = err.get("ctx", {}).get("tag", value)
+        return loc + ("type",), f"unknown filter type {tag!r}; expected one of {tags}"
+    if kind == "union_tag_not_found":
+        return loc + ("type",), f"required key is missing: every filter needs a 'type', one of {tags}"
+    if kind == "finite_number":
+        return loc, f"must be a finite number (got {_short(value)})"
+    if kind == "value_error":
+        return loc, msg.removeprefix("Value error, ")
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        return loc, f"must be a mapping of keys to values (got {_short(value)})"
+    if isinstance(value, (dict, list)):
+        return loc, msg
+    return loc, f"{msg} (got {_short(value)})"
+
+
+# ------------------------------------------------------------------ semantic checks
+
+
+_VEC3 = TypeAdapter(Vec3)
+
+
+def _ok(adapter: TypeAdapter, value: Any) -> Any:
+    """``value`` validated by ``adapter``, or ``None`` if it does not validate (pydantic reports that)."""
+    try:
+        return adapter.validate_python(value)
+    except ValidationError:
+        return None
+
+
+def _get(data: Any, *keys: str) -> Any:
+    for k in keys:
+        if not isinstance(data, dict) or k not in data:
+            return None
+        data = data[k]
+    return data
+
+
+def _truth_sigma(data: Any, key: str) -> float | None:
+    """A truth noise sigma of ``measurements`` (its default if absent), or ``None`` if invalid."""
+    m = _get(data, "measurements")
+    m = {} if m is None else m
+    if not isinstance(m, dict):
+        return None
+    value = m.get(key)
+    if value is None:
+        default = MeasurementsConfig.model_fields[key].default
+        return None if default is None else float(default)
+    ok = _ok(TypeAdapter(float), value)
+    return float(ok) if ok is not None and math.isfinite(ok) and ok >= 0 else None
+
+
+def _points_behind(data: Any) -> list[tuple[Loc, str]]:
+    """Feature points with ``y <= 0`` at t = 0: ``rho_i = rho_0 + D(q0) P_i`` (MODEL.md)."""
+    rho = _ok(_VEC3, _get(data, "truth_initial_state", "rho_m"))
+    q = _ok(TypeAdapter(list[float]), _get(data, "truth_initial_state", "q"))
+    points = _get(data, "target", "feature_points_m")
+    if rho is None or q is None or len(q) != 4 or not isinstance(points, list):
+        return []
+    qv = np.asarray(q, dtype=float)
+    n = float(np.linalg.norm(qv))
+    if not np.isfinite(n) or n < 1e-12 or not np.all(np.isfinite(rho)):
+        return []
+    D = qt.dcm(qv / n)
+    out = []
+    for i, p in enumerate(points):
+        pv = _ok(_VEC3, p)
+        if pv is None or not np.all(np.isfinite(pv)):
+            continue
+        y = float((np.asarray(rho) + D @ np.asarray(pv))[1])
+        if y <= 0.0:
+            out.append(
+                (("target", "feature_points_m", i), f"feature point {i} {list(pv)} is behind the cameras at t=0 "
+                 f"(y = {y:.3g} m <= 0)")  # fmt: skip
+            )
+    return out
+
+
+def _filter_R_positive(data: Any) -> list[tuple[Loc, str]]:
+    """A filter whose R would default to a zero truth noise (a singular innovation covariance)."""
+    sig = {k: _truth_sigma(data, k) for k in ("image_sigma", "flow_sigma")}
+    m = _get(data, "measurements")
+    if isinstance(m, dict) and m.get("disparity") is True:
+        d = _truth_sigma(data, "disparity_sigma")
+        if m.get("disparity_sigma") is None and sig["image_sigma"] is not None:
+            d = math.sqrt(2.0) * sig["image_sigma"]
+        sig["disparity_sigma"] = d
+    filters = data.get("filters", [{"type": "iekf"}]) if isinstance(data, dict) else None
+    if not isinstance(filters, list):
+        return []
+    out = []
+    for k, f in enumerate(filters):
+        if not isinstance(f, dict):
+            continue
+        own = f.get("measurement_noise")
+        own = {} if own is None else own
+        if not isinstance(own, dict):
+            continue
+        for key, s in sig.items():
+            if s == 0.0 and own.get(key) is None:
+                out.append(
+                    (("filters", k, "measurement_noise", key),
+                     f"the filter's R must be positive: set it when the truth noise is 0 (measurements.{key} = 0)")
+                )  # fmt: skip
+    return out
+
+
+def _semantic_checks(data: Any) -> list[tuple[Loc, str]]:
+    """Checks across keys that pydantic's field validators cannot see; run on the raw data."""
+    if not isinstance(data, dict):
+        return []
+    return _points_behind(data) + _filter_R_positive(data)
+
+
+# ----------------------------------------------------------------------- loading
+
+
+def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -> tuple[list[Problem], Scenario | None]:
+    """Every problem of a scenario text, and the scenario if there are none."""
+    root, data, dups = _compose(text, file)
+    if root is None:
+        return [Problem(file, 1, "", "the file is empty; a scenario is a YAML mapping of keys to values")], None
+    if not isinstance(data, dict):
+        kind = "list" if isinstance(data, list) else type(data).__name__
+        msg = f"a scenario must be a YAML mapping of keys to values, not a {kind}"
+        return [Problem(file, root.start_mark.line + 1, "", msg)], None
+    if overrides:
+        data = {**data, **overrides}
+    where = Locator(root)
+    problems = [Problem(file, l2, path_str(loc), duplicate_message(l1, l2)) for loc, l1, l2 in dups]
+    bools = [Problem(file, line, path_str(loc), msg) for loc, line, msg in booleans_as_numbers(root, data)]
+    problems += bools
+    flagged = {p.path for p in bools}
+    scenario = None
+    try:
+        scenario = Scenario.model_validate(data)
+    except ValidationError as exc:
+        for err in exc.errors():
+            loc, msg = error_message(err, clean_loc(tuple(err["loc"])), data)
+            if path_str(loc) in flagged:
+                continue
+            problems.append(Problem(file, where.line(loc), path_str(loc), msg))
+    problems += [Problem(file, where.line(loc), path_str(loc), msg) for loc, msg in _semantic_checks(data)]
+    problems.sort(key=lambda p: p.line or 0)
+    return problems, (scenario if not problems else None)
 
 
 def load_scenario_text(text: str, file: str = "<string>", overrides: dict[str, Any] | None = None) -> Scenario:
     """Parse and validate scenario YAML text; raise ``ScenarioError`` listing all problems."""
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        msg = getattr(exc, "problem", None) or str(exc)
-        raise ScenarioError([Problem(file, line, "", f"YAML syntax error: {msg}")]) from None
-    if not isinstance(data, dict):
-        raise ScenarioError([Problem(file, 1, "", "a scenario must be a YAML mapping of keys to values")])
-    if overrides:
-        data = {**data, **overrides}
-    try:
-        scenario = Scenario.model_validate(data)
-    except ValidationError as exc:
-        problems = []
-        for err in exc.errors():
-            loc = _clean_loc(tuple(err["loc"]))
-            msg = err["msg"]
-            if err["type"] == "extra_forbidden":
-                msg = "unknown key"
-            elif err["type"] == "missing":
-                msg = "required key is missing"
-            problems.append(Problem(file, _key_line(root, loc), _path(loc), msg))
-        raise ScenarioError(problems) from None
-    problems = [Problem(file, _key_line(root, loc), _path(loc), msg) for loc, msg in _semantic_checks(scenario)]
-    if problems:
+    problems, scenario = problems_of(text, file, overrides)
+    if problems or scenario is None:
         raise ScenarioError(problems)
     return scenario
-
-
-def _semantic_checks(s: Scenario) -> list[tuple[tuple[Any, ...], str]]:
-    """Checks across keys that pydantic's field validators cannot see."""
-    out: list[tuple[tuple[Any, ...], str]] = []
-    D = qt.dcm(np.asarray(s.truth_initial_state.q))
-    rho = np.asarray(s.truth_initial_state.rho_m)
-    for i, p in enumerate(s.target.feature_points_m):
-        y = (rho + D @ np.asarray(p))[1]
-        if y <= 0.0:
-            out.append(
-                (("target", "feature_points_m", i), f"feature point {p} is behind the cameras at t=0 (y = {y:.3g} m <= 0)")
-            )
-    return out
 
 
 def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
@@ -141,6 +441,10 @@ def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> 
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ScenarioError([Problem(str(path), None, "", "file not found")]) from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        raise ScenarioError([Problem(str(path), None, "", f"cannot read: {exc}")]) from None
+    except IsADirectoryError:
+        raise ScenarioError([Problem(str(path), None, "", "is a directory, not a scenario file")]) from None
+    except UnicodeDecodeError as exc:
+        raise ScenarioError([Problem(str(path), None, "", f"cannot read: not UTF-8 text ({exc.reason})")]) from None
+    except OSError as exc:
+        raise ScenarioError([Problem(str(path), None, "", f"cannot read: {exc.strerror or exc}")]) from None
     return load_scenario_text(text, str(path), overrides)

@@ -85,7 +85,7 @@ class Update:
     x: Array  # (B, n) posterior state
     P: Array  # (B, n, n) posterior covariance
     nu: Array  # (B, m) innovation at the prior, y - h(x-)
-    S: Array  # (B, m, m) its covariance at the prior
+    nis: Array  # (B,) normalized innovation squared nu^T S^-1 nu, S = H P- H^T + R at the prior
     iterations: Array  # (B,) int, 1 for the EKF
     converged: Array  # (B,) bool, True for the EKF
 
@@ -93,41 +93,24 @@ class Update:
 def ekf_update(x: Array, P: Array, y: Array, measure: Measure, R: Array, rows: Array) -> Update:
     """EKF update: ``K = P H^T (H P H^T + R)^-1``, ``x+ = x + K (y - h(x))``, Joseph ``P+``."""
     hx, H = measure(x, rows, jac=True)
+    R = np.broadcast_to(R, y.shape)
     S = innovation_covariance(P, H, R)
     K = gain(P, H, S)
     nu = y - hx
     x_new = x + np.einsum("...ij,...j->...i", K, nu)
     B = x.shape[0]
-    return Update(x_new, joseph(P, K, H, R), nu, S, np.ones(B, int), np.ones(B, bool))
+    return Update(x_new, joseph(P, K, H, R), nu, mahalanobis2(nu, S), np.ones(B, int), np.ones(B, bool))
 
 
 def map_cost(x: Array, x_prior: Array, P_prior: Array, y: Array, hx: Array, R: Array) -> Array:
     """MAP cost ``(x - x-)^T P-^-1 (x - x-) + (y - h(x))^T R^-1 (y - h(x))`` per trial."""
     e = x - x_prior
     r = y - hx
-    return np.einsum("...i,...i->...", e, np.linalg.solve(P_prior, e[..., None])[..., 0]) + np.sum(r * r / R, axis=-1)
+    return mahalanobis2(e, P_prior) + np.sum(r * r / R, axis=-1)
 
 
-def step_size(dx: Array, P_prior: Array, stopping: str, H: Array | None = None, R: Array | None = None) -> Array:
-    """Unit-free size of an IEKF increment ``dx`` for the stopping test.
-
-    ``mahalanobis``: ``sqrt(dx^T (P-^-1 + H^T R^-1 H) dx)``, the increment in standard
-    deviations of the (linearized) posterior, whose information matrix is
-    ``P-^-1 + H^T R^-1 H``; computed without forming it.
-    ``prior``: ``sqrt(dx^T P-^-1 dx)``; ``scaled``: ``max_i |dx_i| / sqrt(P-_ii)``;
-    ``raw``: ``|dx|`` (the thesis's test, which mixes metres, rad/s and k).
-    """
-    if stopping in ("mahalanobis", "prior"):
-        d2 = mahalanobis2(dx, P_prior)
-        if stopping == "mahalanobis":
-            Hdx = np.einsum("...ij,...j->...i", H, dx)
-            d2 = d2 + np.sum(Hdx * Hdx / R, axis=-1)
-        return np.sqrt(np.maximum(d2, 0.0))
-    if stopping == "scaled":
-        return np.max(np.abs(dx) / np.sqrt(np.diagonal(P_prior, axis1=-2, axis2=-1)), axis=-1)
-    if stopping == "raw":
-        return np.linalg.norm(dx, axis=-1)
-    raise ValueError(f"unknown stopping test {stopping!r}")
+STOPPING_TESTS = ("mahalanobis", "prior", "scaled", "raw")
+STEP_CONTROLS = ("line_search", "levenberg_marquardt", "none")
 
 
 def iekf_update(
@@ -142,108 +125,149 @@ def iekf_update(
     step_control: str = "line_search",
     stopping: str = "mahalanobis",
     max_halvings: int = 10,
-    renormalize: Callable[[Array], Array] | None = None,
 ) -> Update:
     """Iterated EKF update in Gauss-Newton form, with optional step control.
 
-    From ``x^0 = x-``, the Gauss-Newton point of iterate ``x^j`` is
+    The IEKF minimizes the MAP cost
+    ``J(x) = (x - x-)^T P-^-1 (x - x-) + (y - h(x))^T R^-1 (y - h(x))``. From
+    ``x^0 = x-``, the Gauss-Newton point of the iterate ``x^j`` is
 
         x_GN = x- + K_j [y - h(x^j) - H_j (x- - x^j)],   K_j = P- H_j^T (H_j P- H_j^T + R)^-1
 
-    which minimizes the linearized MAP cost
-    ``J(x) = (x - x-)^T P-^-1 (x - x-) + (y - h(x))^T R^-1 (y - h(x))``. ``step_control``:
+    It is computed in whitened coordinates ``x = x- + L z`` (``P- = L L^T``, Cholesky,
+    once per update) with ``Hw = R^-1/2 H L`` and ``rw = R^-1/2 (y - h(x^j))``, where the
+    cost is ``|z|^2 + |rw(z)|^2`` and the Gauss-Newton point solves the n x n system
+    ``(I + Hw^T Hw) z_GN = Hw^T (rw + Hw z_j)`` (the same point as the gain form above,
+    by the push-through identity, for an n x n instead of an m x m solve).
 
-    - ``none``: ``x^{j+1} = x_GN`` (the standard IEKF; the thesis's algorithm 2 plus the
+    ``step_control``:
+
+    - ``none``: ``z^{j+1} = z_GN`` (the standard IEKF; the thesis's algorithm 2 plus the
       ``H_j (x- - x^j)`` term it omits);
-    - ``line_search``: ``x^{j+1} = x^j + a (x_GN - x^j)`` with ``a = 1, 1/2, 1/4, ...``
+    - ``line_search``: ``z^{j+1} = z^j + a (z_GN - z^j)`` with ``a = 1, 1/2, 1/4, ...``
       the first that does not increase ``J``; if none within ``max_halvings`` halvings
       does, the trial stops at ``x^j`` (not converged);
-    - ``levenberg_marquardt``: the step minimizes the linearized cost plus
-      ``lam dx^T P-^-1 dx``, i.e. a Gauss-Newton step with prior covariance
-      ``P-/(1+lam)``: ``dx = K_lam r - (I - K_lam H)(x^j - x-)/(1 + lam)``, accepted when
-      ``J`` does not increase; ``lam`` (from 1e-3) is divided by 10 after an accepted
-      step and multiplied by 10 after a rejected one.
+    - ``levenberg_marquardt``: ``z^{j+1}`` minimizes the linearized cost plus
+      ``lam |z - z^j|^2 = lam (x - x^j)^T P-^-1 (x - x^j)``:
+      ``((1 + lam) I + Hw^T Hw) z = Hw^T (rw + Hw z_j) + lam z_j``, accepted when ``J`` does
+      not increase; ``lam`` (from 1e-3) is divided by 10 after an accepted step and
+      multiplied by 10 after a rejected one.
 
-    Each trial stops on its own (masking) once an accepted increment has
-    ``step_size(...) < tol`` (converged) or after ``max_iter`` iterations. ``P+`` is the
-    Joseph form with ``H_j, K_j`` of the iterate from which the final state was reached.
-    ``nu, S`` are those at the prior (the EKF's innovation), for the NIS.
+    Each trial stops on its own (masking) once an accepted increment ``dx = L dz`` has
+    size ``< tol`` (converged) or after ``max_iter`` iterations, the size being
+    (``stopping``) ``mahalanobis``: ``sqrt(dx^T (P-^-1 + H^T R^-1 H) dx) = |[dz, Hw dz]|``,
+    the increment in standard deviations of the linearized posterior; ``prior``:
+    ``sqrt(dx^T P-^-1 dx) = |dz|``; ``scaled``: ``max_i |dx_i| / sqrt(P-_ii)``; ``raw``:
+    ``|dx|`` (the thesis's test, which mixes metres, rad/s and k).
+
+    ``P+`` is the Joseph form with ``H_j`` and ``K_j = L (I + Hw^T Hw)^-1 Hw^T R^-1/2`` of
+    the iterate from which the final state was reached. ``nu, nis`` are those at the
+    prior (the EKF's innovation). Iterates are not renormalized (``h`` of this model does
+    not depend on the quaternion's norm); the caller renormalizes the final state.
     """
-    B = x_prior.shape[0]
-    ren = renormalize if renormalize is not None else (lambda z: z)
+    if step_control not in STEP_CONTROLS:
+        raise ValueError(f"unknown step_control {step_control!r}")
+    if stopping not in STOPPING_TESTS:
+        raise ValueError(f"unknown stopping test {stopping!r}")
+    B, n = x_prior.shape
     Rb = np.broadcast_to(R, y.shape)
-    x = x_prior.copy()
-    hx, H = measure(x, rows, jac=True)
-    S = innovation_covariance(P_prior, H, Rb)
-    K = gain(P_prior, H, S)
-    nu0, S0 = y - hx, S
-    H_fin, K_fin = H.copy(), K.copy()
-    cost = map_cost(x, x_prior, P_prior, y, hx, Rb) if step_control != "none" else np.zeros(B)
+    rw_scale = 1.0 / np.sqrt(Rb)  # (B, m)
+    L = np.linalg.cholesky(P_prior)
+    eye = np.eye(n)
+
+    def whiten(H, hx, a):
+        Hw = (H @ L[a]) * rw_scale[a][..., None]
+        rw = (y[a] - hx) * rw_scale[a]
+        return Hw, rw, eye + np.swapaxes(Hw, -1, -2) @ Hw
+
+    def to_x(z, a):
+        return x_prior[a] + np.einsum("...ij,...j->...i", L[a], z)
+
+    hx, H = measure(x_prior, rows, jac=True)
+    Hw, rw, A = whiten(H, hx, np.arange(B))
+    nu0 = y - hx
+    # NIS by Woodbury: nu^T S^-1 nu = |rw|^2 - g^T A^-1 g, g = Hw^T rw
+    g0 = np.einsum("...ji,...j->...i", Hw, rw)
+    nis0 = np.sum(rw * rw, -1) - np.einsum("...i,...i->...", g0, np.linalg.solve(A, g0[..., None])[..., 0])
+    z = np.zeros((B, n))
+    cost = np.sum(rw * rw, axis=-1)  # J at z = 0
+    H_fin, Hw_fin, A_fin = H.copy(), Hw.copy(), A.copy()
     lam = np.full(B, 1e-3)
     iterations = np.zeros(B, int)
     converged = np.zeros(B, bool)
     active = np.arange(B)
     for it in range(max_iter):
         a = active
-        xa, xpa, Pa, ya, Ra = x[a], x_prior[a], P_prior[a], y[a], Rb[a]
-        r = ya - hx
+        za = z[a]
+        rhs = np.einsum("...ji,...j->...i", Hw, rw + np.einsum("...ij,...j->...i", Hw, za))
         if step_control == "levenberg_marquardt":
-            x_new, c_new, ok = _lm_step(xa, xpa, Pa, ya, Ra, r, H, lam[a], cost[a], measure, rows[a], ren)
+            z_try = np.linalg.solve(A + lam[a][:, None, None] * eye, (rhs + lam[a][:, None] * za)[..., None])[..., 0]
+            z_new, c_new, ok = _accept(z_try, za, cost[a], measure, rows[a], to_x, y, rw_scale, a)
             lam[a] = np.where(ok, lam[a] / 10.0, lam[a] * 10.0)
         else:
-            x_gn = ren(xpa + np.einsum("...ij,...j->...i", K, r - np.einsum("...ij,...j->...i", H, xpa - xa)))
+            z_gn = np.linalg.solve(A, rhs[..., None])[..., 0]
             if step_control == "none":
-                x_new, c_new, ok = x_gn, cost[a], np.ones(a.size, bool)
-            elif step_control == "line_search":
-                x_new, c_new, ok = _line_search(xa, x_gn, xpa, Pa, ya, Ra, cost[a], measure, rows[a], ren, max_halvings)
+                z_new, c_new, ok = z_gn, cost[a], np.ones(a.size, bool)
             else:
-                raise ValueError(f"unknown step_control {step_control!r}")
+                z_new, c_new, ok = _line_search(z_gn, za, cost[a], measure, rows[a], to_x, y, rw_scale, a,
+                                                max_halvings)  # fmt: skip
         iterations[a] += 1
-        small = ok & (step_size(x_new - xa, Pa, stopping, H, Ra) < tol)
-        H_fin[a[ok]] = H[ok]
-        K_fin[a[ok]] = K[ok]
-        x[a], cost[a] = x_new, c_new
+        small = ok & (_increment_size(z_new - za, Hw, L[a], P_prior[a], stopping) < tol)
+        H_fin[a[ok]], Hw_fin[a[ok]], A_fin[a[ok]] = H[ok], Hw[ok], A[ok]
+        z[a], cost[a] = z_new, c_new
         converged[a[small]] = True
         done = small | (~ok if step_control == "line_search" else False)
         active = a[~done]
         if active.size == 0 or it == max_iter - 1:
             break
-        hx, H = measure(x[active], rows[active], jac=True)
-        S = innovation_covariance(P_prior[active], H, Rb[active])
-        K = gain(P_prior[active], H, S)
-    P_post = joseph(P_prior, K_fin, H_fin, Rb)
-    return Update(x, P_post, nu0, S0, iterations, converged)
+        hx, H = measure(to_x(z[active], active), rows[active], jac=True)
+        Hw, rw, A = whiten(H, hx, active)
+    x = to_x(z, np.arange(B))
+    K = L @ np.linalg.solve(A_fin, np.swapaxes(Hw_fin, -1, -2)) * rw_scale[:, None, :]
+    return Update(x, joseph(P_prior, K, H_fin, Rb), nu0, nis0, iterations, converged)
 
 
-def _line_search(xa, x_gn, xpa, Pa, ya, Ra, cost_a, measure, rows, ren, max_halvings):
-    """Backtracking from ``xa`` toward ``x_gn`` until the MAP cost does not increase."""
-    d = x_gn - xa
-    alpha = np.ones(xa.shape[0])
-    x_new, cost_new = xa.copy(), cost_a.copy()
-    accepted = np.zeros(xa.shape[0], bool)
-    todo = np.arange(xa.shape[0])
+def _increment_size(dz: Array, Hw: Array, L: Array, P_prior: Array, stopping: str) -> Array:
+    """Unit-free size of the increment ``dx = L dz`` (see ``iekf_update``)."""
+    if stopping == "mahalanobis":
+        Hdz = np.einsum("...ij,...j->...i", Hw, dz)
+        return np.sqrt(np.sum(dz * dz, -1) + np.sum(Hdz * Hdz, -1))
+    if stopping == "prior":
+        return np.linalg.norm(dz, axis=-1)
+    dx = np.einsum("...ij,...j->...i", L, dz)
+    if stopping == "scaled":
+        return np.max(np.abs(dx) / np.sqrt(np.diagonal(P_prior, axis1=-2, axis2=-1)), axis=-1)
+    return np.linalg.norm(dx, axis=-1)
+
+
+def _cost(z, measure, rows, to_x, y, rw_scale, a):
+    """``J = |z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` for the trials ``a``."""
+    hx, _ = measure(to_x(z, a), rows, jac=False)
+    r = (y[a] - hx) * rw_scale[a]
+    return np.sum(z * z, -1) + np.sum(r * r, -1)
+
+
+def _accept(z_try, za, cost_a, measure, rows, to_x, y, rw_scale, a):
+    """Keep ``z_try`` where it does not increase the cost, else stay at ``za``."""
+    c = _cost(z_try, measure, rows, to_x, y, rw_scale, a)
+    ok = np.isfinite(c) & (c <= cost_a)
+    return np.where(ok[:, None], z_try, za), np.where(ok, c, cost_a), ok
+
+
+def _line_search(z_gn, za, cost_a, measure, rows, to_x, y, rw_scale, a, max_halvings):
+    """Backtracking from ``za`` toward ``z_gn`` until the MAP cost does not increase."""
+    d = z_gn - za
+    alpha = np.ones(za.shape[0])
+    z_new, cost_new = za.copy(), cost_a.copy()
+    accepted = np.zeros(za.shape[0], bool)
+    todo = np.arange(za.shape[0])
     for _ in range(max_halvings + 1):
-        xt = ren(xa[todo] + alpha[todo, None] * d[todo])
-        ht, _ = measure(xt, rows[todo], jac=False)
-        ct = map_cost(xt, xpa[todo], Pa[todo], ya[todo], ht, Ra[todo])
+        zt = za[todo] + alpha[todo, None] * d[todo]
+        ct = _cost(zt, measure, rows[todo], to_x, y, rw_scale, a[todo])
         ok = np.isfinite(ct) & (ct <= cost_a[todo])
-        x_new[todo[ok]], cost_new[todo[ok]], accepted[todo[ok]] = xt[ok], ct[ok], True
+        z_new[todo[ok]], cost_new[todo[ok]], accepted[todo[ok]] = zt[ok], ct[ok], True
         todo = todo[~ok]
         if todo.size == 0:
             break
         alpha[todo] *= 0.5
-    return x_new, cost_new, accepted
-
-
-def _lm_step(xa, xpa, Pa, ya, Ra, r, H, lam, cost_a, measure, rows, ren):
-    """One Levenberg-Marquardt trial step with prior-scaled damping (see ``iekf_update``)."""
-    s = 1.0 + lam
-    P_l = Pa / s[:, None, None]
-    K_l = gain(P_l, H, innovation_covariance(P_l, H, Ra))
-    e = xa - xpa
-    dx = np.einsum("...ij,...j->...i", K_l, r) - (e - np.einsum("...ij,...jk,...k->...i", K_l, H, e)) / s[:, None]
-    xt = ren(xa + dx)
-    ht, _ = measure(xt, rows, jac=False)
-    c_new = map_cost(xt, xpa, Pa, ya, ht, Ra)
-    ok = np.isfinite(c_new) & (c_new <= cost_a)
-    return np.where(ok[:, None], xt, xa), np.where(ok, c_new, cost_a), ok
+    return z_new, cost_new, accepted

@@ -112,9 +112,7 @@ def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSet
     y = step.y[rows]
     if fs.kind == "ekf":
         u = kf.ekf_update(x, P, y, measure, R, rows)
-        return kf.Update(renormalize(u.x), u.P, u.nu, u.S, u.iterations, u.converged)
-    return kf.iekf_update(
-        x, P, y, measure, R, rows,
-        tol=fs.tolerance, max_iter=fs.max_iterations, step_control=fs.step_control,
-        stopping=fs.stopping, renormalize=renormalize,
-    )  # fmt: skip
+    else:
+        u = kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
+                           step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip
+    return kf.Update(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged)

@@ -97,6 +97,7 @@ class FilterRun:
     diverged_reason: list[str] = field(default_factory=list)
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
+    P_final: Array | None = None  # (B, n, n)
 
 
 def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
@@ -165,7 +166,7 @@ def run_filter(
         nis_dof[k] = u.nu.shape[-1]
         with np.errstate(all="ignore"):
             try:
-                nis[active, k] = kf_mahalanobis(u.nu, u.S)
+                nis[active, k] = u.nis
                 nees[active, k] = _nees(u.x, u.P, truth.x[k])
             except np.linalg.LinAlgError:
                 pass
@@ -175,7 +176,7 @@ def run_filter(
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
         active = active[keep]
-    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x)
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P)
 
 
 def _robust_update(xa, Pa, step, rows, fs, setup):
@@ -204,14 +205,8 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
         return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
 
     u = kf.Update(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
-                  cat("S", (m, m), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
+                  cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
     return u, reasons
-
-
-def kf_mahalanobis(v: Array, S: Array) -> Array:
-    from ..core.filters import mahalanobis2
-
-    return mahalanobis2(v, S)
 
 
 def _nees(x: Array, P: Array, x_true: Array) -> Array:

@@ -49,7 +49,8 @@ def test_ekf_equals_textbook_kalman_filter(seed, n, m):
         np.testing.assert_allclose(u.x[b], xr, rtol=1e-10, atol=1e-10)
         # Joseph form equals (I - KH)P for the optimal gain
         np.testing.assert_allclose(u.P[b], Pr, rtol=1e-9, atol=1e-10)
-        np.testing.assert_allclose(u.S[b], Sr, rtol=1e-12)
+        nu = y[b] - H @ x[b]
+        np.testing.assert_allclose(u.nis[b], nu @ np.linalg.solve(Sr, nu), rtol=1e-10)
         np.testing.assert_allclose(u.nu[b], y[b] - H @ x[b], rtol=1e-12)
 
 
@@ -116,11 +117,22 @@ def test_predict_covariance_matches_formula():
 
 def test_stopping_sizes_are_unit_free():
     P = np.diag([4.0, 1e-6])[None]
-    dx = np.array([[2.0, 1e-3]])  # one sigma in each coordinate
-    assert kf.step_size(dx, P, "prior")[0] == pytest.approx(np.sqrt(2.0))
-    assert kf.step_size(dx, P, "scaled")[0] == pytest.approx(1.0)
+    L = np.linalg.cholesky(P)
+    dx = np.array([[2.0, 1e-3]])  # one prior sigma in each coordinate
+    dz = np.linalg.solve(L, dx[..., None])[..., 0]
     H = np.array([[[0.0, 1.0]]])
     R = np.array([[1e-6]])
+    Hw = H @ L / np.sqrt(R)[..., None]
+    assert kf._increment_size(dz, Hw, L, P, "prior")[0] == pytest.approx(np.sqrt(2.0))
+    assert kf._increment_size(dz, Hw, L, P, "scaled")[0] == pytest.approx(1.0)
     # posterior information adds (H dx)^2 / R = 1
-    assert kf.step_size(dx, P, "mahalanobis", H, R)[0] == pytest.approx(np.sqrt(3.0))
-    assert kf.step_size(dx, P, "raw")[0] == pytest.approx(np.hypot(2.0, 1e-3))
+    assert kf._increment_size(dz, Hw, L, P, "mahalanobis")[0] == pytest.approx(np.sqrt(3.0))
+    assert kf._increment_size(dz, Hw, L, P, "raw")[0] == pytest.approx(np.hypot(2.0, 1e-3))
+
+
+def test_iekf_nis_equals_the_ekf_nis():
+    rng = np.random.default_rng(11)
+    x, P, H, R, y = random_problem(rng, 5, 6, 4)
+    e = kf.ekf_update(x, P, y, linear_measure(H), R, np.arange(5))
+    i = kf.iekf_update(x, P, y, linear_measure(H), R, np.arange(5))
+    np.testing.assert_allclose(i.nis, e.nis, rtol=1e-9)

@@ -1,0 +1,409 @@
+"""Statistics figures of a run directory (thesis figures 6.1-6.14 and 6.37, table 6.7).
+
+Every figure is drawn from the run's Parquet tables alone and saved twice, as PNG
+(150 dpi) and SVG, into ``DIR/figures/``. Matplotlib is used through its object API
+(``Figure`` + the Agg canvas), so importing this module never changes the global
+backend. SVG output is made reproducible (fixed hash salt, no date).
+
+Figures (``<f>`` is a filter label, made safe for file names):
+
+- ``hist-<f>``: histograms of the six per-trial window-mean errors of converged trials;
+- ``diff-ekf-iekf``: paired histograms of ``e_EKF - e_IEKF`` per error, over the trials
+  where both filters converged (only when the run has an EKF and an IEKF);
+- ``time-<f>``: error vs time over the trials of ``timeseries.parquet``: the median and the
+  central 70 % (15th-85th percentile) and 90 % (5th-95th) bands, log y;
+- ``nees-<f>`` / ``nis-<f>``: the mean over trials of NEES / NIS vs time with the two-sided
+  95 % band of that mean for a consistent filter,
+  ``[chi2.ppf(0.025, M n), chi2.ppf(0.975, M n)] / M`` (``M`` trials alive at the step,
+  ``n`` = state dimension for NEES, the step's measurement dimension for NIS);
+- ``runtime``: histogram of the per-trial compute time (``timing.parquet``).
+
+Tables written beside them: ``percentiles-<f>.csv|.md`` (the thesis layout) and
+``compute_time.csv|.md`` (max / mean / min seconds per trial).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy.stats import chi2
+
+from ..mc.trial import ERROR_NAMES
+from . import rundir, tables
+from .tables import ERROR_LABELS
+
+DPI = 150
+PANEL_SHAPE = (2, 3)
+CENTRAL_BANDS = ((70.0, "#9ecae1"), (90.0, "#deebf7"))  # (coverage %, colour), drawn widest first
+SVG_RC = {"svg.hashsalt": "stereopose_mc", "svg.fonttype": "path"}
+
+
+@dataclass(frozen=True)
+class FigureFile:
+    """One saved figure: a key, a title and caption for the report, and its two files."""
+
+    key: str
+    title: str
+    caption: str
+    png: Path
+    svg: Path
+
+
+@dataclass
+class FigureSet:
+    """What :func:`build_figures` wrote, and why anything was skipped."""
+
+    figures: list[FigureFile] = field(default_factory=list)
+    tables: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def safe_name(label: str) -> str:
+    """A filter label made safe for a file name."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(label)) or "_"
+
+
+def save_figure(fig: Figure, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    """Save ``fig`` as ``stem.png`` (150 dpi) and ``stem.svg``, each written atomically."""
+    import io
+
+    import matplotlib
+
+    FigureCanvasAgg(fig)
+    paths = []
+    for ext in ("png", "svg"):
+        buf = io.BytesIO()
+        with matplotlib.rc_context(SVG_RC):
+            meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
+            fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
+        path = out_dir / f"{stem}.{ext}"
+        rundir.atomic_write_bytes(path, buf.getvalue())
+        paths.append(path)
+    return paths[0], paths[1]
+
+
+def _panels(title: str) -> tuple[Figure, np.ndarray]:
+    fig = Figure(figsize=(12, 6.8), layout="constrained")
+    axes = fig.subplots(*PANEL_SHAPE).ravel()
+    fig.suptitle(title)
+    return fig, axes
+
+
+def _bins(v: np.ndarray) -> int:
+    """Histogram bin count: ``ceil(sqrt(n))`` clipped to [5, 40]."""
+    return int(np.clip(np.ceil(np.sqrt(max(v.size, 1))), 5, 40))
+
+
+# --------------------------------------------------------------------------- histograms
+
+
+def error_histograms(trials: pd.DataFrame, label: str) -> Figure:
+    """Histograms of the six per-trial window-mean errors of one filter (converged trials)."""
+    g = trials[trials["filter"] == label]
+    n, nd = len(g), int(g["diverged"].sum())
+    fig, axes = _panels(f"{label}: per-trial mean errors, {n - nd} of {n} trials converged ({nd} diverged)")
+    ok = ~g["diverged"].to_numpy(bool)
+    for ax, name in zip(axes, ERROR_NAMES):
+        v = g[name].to_numpy(float)[ok]
+        v = v[np.isfinite(v)]
+        if v.size:
+            ax.hist(v, bins=_bins(v), color="#4c72b0", edgecolor="white")
+            ax.axvline(np.median(v), color="k", ls="--", lw=1, label=f"median {np.median(v):.3g}")
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no converged trials", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel(ERROR_LABELS[name])
+        ax.set_ylabel("trials")
+    return fig
+
+
+def paired_differences(trials: pd.DataFrame, ekf: str, iekf: str) -> tuple[pd.DataFrame, int]:
+    """Per trial ``e_EKF - e_IEKF`` of the six errors, over trials where both filters converged.
+
+    Returns the differences (one row per kept trial, column ``trial`` + the six errors)
+    and the number of trials the two filters have in common.
+    """
+    cols = ["trial", "diverged", *ERROR_NAMES]
+    a = trials.loc[trials["filter"] == ekf, cols]
+    b = trials.loc[trials["filter"] == iekf, cols]
+    both = a.merge(b, on="trial", how="inner", suffixes=("_ekf", "_iekf")).sort_values("trial", kind="stable")
+    ok = ~both["diverged_ekf"].to_numpy(bool) & ~both["diverged_iekf"].to_numpy(bool)
+    for name in ERROR_NAMES:
+        ok &= np.isfinite(both[f"{name}_ekf"].to_numpy(float)) & np.isfinite(both[f"{name}_iekf"].to_numpy(float))
+    kept = both[ok]
+    diff = pd.DataFrame({"trial": kept["trial"].to_numpy()})
+    for name in ERROR_NAMES:
+        diff[name] = kept[f"{name}_ekf"].to_numpy(float) - kept[f"{name}_iekf"].to_numpy(float)
+    return diff, len(both)
+
+
+def paired_difference_figure(diff: pd.DataFrame, n_common: int, ekf: str, iekf: str) -> Figure:
+    """Histograms of ``e_EKF - e_IEKF`` (positive: the IEKF's error is smaller)."""
+    n = len(diff)
+    fig, axes = _panels(f"{ekf} - {iekf}: paired differences of per-trial mean errors, "
+                        f"{n} of {n_common} trials where both converged")  # fmt: skip
+    for ax, name in zip(axes, ERROR_NAMES):
+        v = diff[name].to_numpy(float)
+        if v.size:
+            ax.hist(v, bins=_bins(v), color="#dd8452", edgecolor="white")
+            ax.axvline(0.0, color="k", lw=1)
+            ax.set_title(f"{iekf} lower in {int(np.sum(v > 0))} of {v.size}", fontsize=9)
+        else:
+            ax.text(0.5, 0.5, "no paired trials", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel(f"{ERROR_LABELS[name]}: {ekf} - {iekf}")
+        ax.set_ylabel("trials")
+    return fig
+
+
+# --------------------------------------------------------------------------- time series
+
+
+def pivot(ts: pd.DataFrame, column: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(trials, t, A)`` with ``A[i, k]`` = ``column`` of trial ``trials[i]`` at step ``k`` (NaN if absent)."""
+    trial_ids = np.unique(ts["trial"].to_numpy())
+    steps = np.unique(ts["step"].to_numpy())
+    ti = np.searchsorted(trial_ids, ts["trial"].to_numpy())
+    si = np.searchsorted(steps, ts["step"].to_numpy())
+    A = np.full((trial_ids.size, steps.size), np.nan)
+    A[ti, si] = ts[column].to_numpy(float)
+    t = np.full(steps.size, np.nan)
+    t[si] = ts["t"].to_numpy(float)
+    return trial_ids, t, A
+
+
+def time_percentiles(A: np.ndarray, qs: list[float]) -> np.ndarray:
+    """``(len(qs), K)`` percentiles over trials (axis 0) per step, ignoring NaN (diverged) trials."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanpercentile(A, qs, axis=0)
+
+
+def error_vs_time_figure(ts: pd.DataFrame, label: str, window_start: float | None) -> Figure:
+    """Median and central 70 % / 90 % bands over trials of each error vs time (log y)."""
+    g = ts[ts["filter"] == label]
+    trial_ids = np.unique(g["trial"].to_numpy())
+    fig, axes = _panels(f"{label}: estimation error vs time over {trial_ids.size} trials "
+                        "(median, central 70 % and 90 % bands)")  # fmt: skip
+    for ax, name in zip(axes, ERROR_NAMES):
+        _, t, A = pivot(g, name)
+        for cover, colour in sorted(CENTRAL_BANDS, reverse=True):
+            lo, hi = time_percentiles(A, [50 - cover / 2, 50 + cover / 2])
+            ax.fill_between(t, lo, hi, color=colour, lw=0, label=f"{cover:g} % band")
+        ax.plot(t, time_percentiles(A, [50])[0], color="#08519c", lw=1.5, label="median")
+        if window_start is not None:
+            ax.axvline(window_start, color="grey", ls=":", lw=1)
+        ax.set_yscale("log")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(ERROR_LABELS[name])
+    axes[0].legend(fontsize=8)
+    return fig
+
+
+def mean_band(M: np.ndarray, dof: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Two-sided ``level`` band of the mean of ``M`` independent chi-square(``dof``) variables.
+
+    ``M * mean ~ chi2(M * dof)``, so the band is ``chi2.ppf([a/2, 1 - a/2], M dof) / M``.
+    NaN where ``M * dof == 0``.
+    """
+    M = np.asarray(M, float)
+    dof = np.broadcast_to(np.asarray(dof, float), M.shape)
+    a = 1.0 - level
+    ok = (M > 0) & (dof > 0)
+    lo = np.full(M.shape, np.nan)
+    hi = np.full(M.shape, np.nan)
+    lo[ok] = chi2.ppf(a / 2, M[ok] * dof[ok]) / M[ok]
+    hi[ok] = chi2.ppf(1 - a / 2, M[ok] * dof[ok]) / M[ok]
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Mean over trials of NEES or NIS per step, the 95 % band and the trials alive ``M``."""
+
+    t: np.ndarray
+    mean: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    M: np.ndarray
+    dof: np.ndarray
+
+    @property
+    def inside(self) -> tuple[int, int]:
+        """(steps whose mean is inside the band, steps with a band)."""
+        ok = np.isfinite(self.lo) & np.isfinite(self.mean)
+        return int(np.sum(ok & (self.mean >= self.lo) & (self.mean <= self.hi))), int(ok.sum())
+
+
+def consistency(ts: pd.DataFrame, label: str, column: str, dof: int | None) -> Consistency:
+    """Mean of ``column`` (``nees`` or ``nis``) over trials per step and its 95 % band.
+
+    ``dof`` is the state dimension for NEES; ``None`` takes each step's ``nis_dof``.
+    """
+    g = ts[ts["filter"] == label]
+    _, t, A = pivot(g, column)
+    finite = np.isfinite(A)
+    M = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(M > 0, np.where(finite, A, 0.0).sum(axis=0) / np.maximum(M, 1), np.nan)
+    if dof is None:
+        _, _, D = pivot(g, "nis_dof")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            d = np.nanmax(np.where(finite, D, np.nan), axis=0)
+        d = np.where(np.isfinite(d), d, 0.0)
+    else:
+        d = np.full(t.shape, float(dof))
+    lo, hi = mean_band(M, d)
+    return Consistency(t, mean, lo, hi, M, d)
+
+
+def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> Figure:
+    """Mean NEES / NIS vs time with its 95 % chi-square band (log y)."""
+    inside, steps = c.inside
+    fig = Figure(figsize=(9, 4.5), layout="constrained")
+    ax = fig.subplots()
+    ok = np.isfinite(c.lo)
+    ax.fill_between(c.t[ok], c.lo[ok], c.hi[ok], color="#c7e9c0", lw=0, label="95 % band for a consistent filter")
+    ax.plot(c.t, c.mean, color="#238b45", lw=1.5, label=f"mean {what} over trials")
+    ax.plot(c.t[ok], c.dof[ok], color="k", ls=":", lw=1, label=f"expected ({dof_text})")
+    ax.set_yscale("log")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(what)
+    m = int(np.max(c.M)) if c.M.size else 0
+    ax.set_title(f"{label}: mean {what} over up to {m} trials; inside the band at {inside} of {steps} steps")
+    ax.legend(fontsize=8)
+    return fig
+
+
+# --------------------------------------------------------------------------- compute time
+
+
+def compute_time_table(timing: pd.DataFrame) -> pd.DataFrame:
+    """Per filter: trials, max, mean and min compute time per trial [s] (thesis table 6.7)."""
+    rows = []
+    for label, g in timing.groupby("filter", sort=False):
+        v = g["runtime_s"].to_numpy(float)
+        rows.append({"filter": label, "trials": int(v.size), "max_s": float(np.max(v)),
+                     "mean_s": float(np.mean(v)), "min_s": float(np.min(v))})  # fmt: skip
+    return pd.DataFrame(rows, columns=["filter", "trials", "max_s", "mean_s", "min_s"])
+
+
+def compute_time_figure(timing: pd.DataFrame) -> Figure:
+    """Histogram of the per-trial compute time, one colour per filter."""
+    fig = Figure(figsize=(9, 4.5), layout="constrained")
+    ax = fig.subplots()
+    v_all = timing["runtime_s"].to_numpy(float)
+    edges = np.histogram_bin_edges(v_all, bins=_bins(v_all)) if v_all.size else 10
+    for label, g in timing.groupby("filter", sort=False):
+        ax.hist(g["runtime_s"].to_numpy(float), bins=edges, alpha=0.6, label=str(label), edgecolor="white")
+    ax.set_xlabel("compute time per trial [s]")
+    ax.set_ylabel("trials")
+    ax.set_title("Compute time per trial (a filter's wall time on a chunk, shared equally by its trials)")
+    ax.legend(fontsize=8)
+    return fig
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def _markdown_table(df: pd.DataFrame) -> str:
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    sep = "|" + "---|" * len(df.columns)
+    body = ["| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row) + " |"
+            for row in df.itertuples(index=False)]  # fmt: skip
+    return "\n".join([head, sep, *body]) + "\n"
+
+
+def ekf_iekf_pair(filters: list[str], types: dict[str, str]) -> tuple[str, str] | None:
+    """The (EKF, IEKF) labels to pair: labels ``ekf`` and ``iekf`` if both exist, else the
+    only filter of each type; ``None`` when there is no such pair."""
+    if "ekf" in filters and "iekf" in filters:
+        return "ekf", "iekf"
+    e = [f for f in filters if types.get(f) == "ekf"]
+    i = [f for f in filters if types.get(f) == "iekf"]
+    return (e[0], i[0]) if len(e) == 1 and len(i) == 1 else None
+
+
+def build_figures(
+    out_dir: Path,
+    trials: pd.DataFrame,
+    timeseries: pd.DataFrame | None,
+    timing: pd.DataFrame | None,
+    *,
+    filters: list[str],
+    filter_types: dict[str, str],
+    state_dim: int | None,
+    window_start: float | None,
+    percentiles: list[float],
+) -> FigureSet:
+    """Write every figure and table that the inputs allow into ``out_dir``; note what is skipped."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fs = FigureSet()
+
+    def add(fig: Figure, key: str, title: str, caption: str) -> None:
+        png, svg = save_figure(fig, out_dir, key)
+        fs.figures.append(FigureFile(key, title, caption, png, svg))
+
+    pt = tables.percentile_table(trials, percentiles)
+    for label in filters:
+        s = safe_name(label)
+        sub = pt[pt["filter"] == label]
+        rundir.atomic_write_text(out_dir / f"percentiles-{s}.csv", sub.to_csv(index=False, float_format="%.10g"))
+        rundir.atomic_write_text(out_dir / f"percentiles-{s}.md", f"# {label}\n\n" + tables.percentiles_markdown(sub))
+        fs.tables += [out_dir / f"percentiles-{s}.csv", out_dir / f"percentiles-{s}.md"]
+    for label in filters:
+        add(error_histograms(trials, label), f"hist-{safe_name(label)}", f"{label}: histograms of per-trial errors",
+            "Per-trial mean error over the error window, converged trials (thesis figures 6.8-6.13).")  # fmt: skip
+
+    pair = ekf_iekf_pair(filters, filter_types)
+    if pair is None:
+        fs.notes.append("paired EKF - IEKF histograms skipped: the run does not have both an EKF and an IEKF filter")
+    else:
+        diff, n_common = paired_differences(trials, *pair)
+        add(paired_difference_figure(diff, n_common, *pair), "diff-ekf-iekf",
+            f"{pair[0]} - {pair[1]}: paired differences",
+            f"Per trial, {pair[0]} error minus {pair[1]} error, over the {len(diff)} of {n_common} trials where both "
+            "converged; positive means the IEKF did better (thesis figures 6.7, 6.14).")  # fmt: skip
+
+    if timeseries is None or timeseries.empty:
+        fs.notes.append("error/NEES/NIS vs time figures skipped: the run has no timeseries.parquet (--timeseries none)")
+    else:
+        for label in filters:
+            if not (timeseries["filter"] == label).any():
+                fs.notes.append(f"{label}: no rows in timeseries.parquet; its time figures are skipped")
+                continue
+            s = safe_name(label)
+            n_ts = timeseries.loc[timeseries["filter"] == label, "trial"].nunique()
+            add(error_vs_time_figure(timeseries, label, window_start), f"time-{s}", f"{label}: error vs time",
+                f"Median over the {n_ts} trials of timeseries.parquet and central bands holding 70 % (15th-85th "
+                "percentile) and 90 % (5th-95th) of them; dotted line: start of the error window "
+                "(thesis figures 6.1-6.6).")  # fmt: skip
+            if state_dim:
+                c = consistency(timeseries, label, "nees", state_dim)
+                add(consistency_figure(c, label, "NEES", f"n = {state_dim}"), f"nees-{s}", f"{label}: NEES vs time",
+                    f"Mean NEES over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*{state_dim})/M.")
+            else:
+                fs.notes.append(f"{label}: NEES figure skipped: manifest.json has no state_dim")
+            c = consistency(timeseries, label, "nis", None)
+            add(consistency_figure(c, label, "NIS", "measurement dimension"), f"nis-{s}", f"{label}: NIS vs time",
+                "Mean NIS over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*m)/M with m the "
+                "step's measurement dimension (nis_dof).")  # fmt: skip
+
+    if timing is None or timing.empty:
+        fs.notes.append("compute-time histogram skipped: the run has no timing.parquet")
+    else:
+        ct = compute_time_table(timing)
+        rundir.atomic_write_text(out_dir / "compute_time.csv", ct.to_csv(index=False, float_format="%.6g"))
+        rundir.atomic_write_text(out_dir / "compute_time.md", "# Compute time per trial [s]\n\n" + _markdown_table(ct))
+        fs.tables += [out_dir / "compute_time.csv", out_dir / "compute_time.md"]
+        add(compute_time_figure(timing), "runtime", "Compute time per trial",
+            "Per-trial compute time from timing.parquet (thesis figure 6.37): a filter's wall time on a chunk "
+            "of trials stepped together, divided by the chunk's trial count, so the spread is between chunks.")
+    return fs

@@ -1,0 +1,538 @@
+"""Self-contained HTML reports of run directories, and an index over several runs.
+
+:func:`build_run_report` reads a run directory's tables (``config.yaml``,
+``manifest.json``, ``trials.parquet`` and, when present, ``timeseries.parquet`` and
+``timing.parquet``), regenerates the figures and tables into ``DIR/figures/`` without
+re-running anything, and writes ``DIR/report.html``: one file with every image embedded
+as a base64 PNG data URI, inline CSS, no JavaScript and no external reference, so it
+opens offline and can be mailed or attached to a CI job as is.
+
+:func:`build_index` writes ``index.html`` for a folder of runs: one row per run and
+filter with the median and 90th percentile of each error, linking to each report.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from .. import __version__
+from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
+from ..mc.trial import ERROR_NAMES
+from . import figures as figs
+from . import rundir, tables
+from .tables import ERROR_LABELS
+
+REQUIRED_FILES = ("config.yaml", "manifest.json", "trials.parquet")
+OPTIONAL_TABLES = ("timeseries.parquet", "timing.parquet")
+TRIALS_COLUMNS = ("trial", "filter", "diverged", *ERROR_NAMES)
+DEFAULT_PERCENTILES = [50.0, 70.0, 90.0, 100.0]
+THESIS_HEADERS = ["pct", "rho [m]", "rho_dot [m/s]", "omega [deg/s]", "theta [deg]", "k1", "k2"]
+
+
+class ReportError(Exception):
+    """A run directory a report cannot be built from; ``problems`` lists every reason."""
+
+    def __init__(self, path: Path, problems: list[str]):
+        self.path = Path(path)
+        self.problems = list(problems)
+        super().__init__(f"{path}: cannot build a report: " + "; ".join(self.problems))
+
+    def lines(self) -> list[str]:
+        """One line per problem, each naming the directory (for the CLI)."""
+        return [f"{self.path}: {p}" for p in self.problems]
+
+
+@dataclass
+class RunData:
+    """The tables of one run directory."""
+
+    path: Path
+    config: dict[str, Any]
+    manifest: dict[str, Any]
+    trials: pd.DataFrame
+    timeseries: pd.DataFrame | None
+    timing: pd.DataFrame | None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return str(self.config.get("name") or self.manifest.get("scenario") or self.path.name)
+
+    @property
+    def filters(self) -> list[str]:
+        """Labels of the filters in trials.parquet, in the run's order (manifest), then any others."""
+        present = [str(f) for f in self.trials["filter"].unique()]
+        listed = [str(f) for f in self.manifest.get("filters") or [] if str(f) in present]
+        return list(dict.fromkeys(listed + present))
+
+    @property
+    def filter_types(self) -> dict[str, str]:
+        """Filter label -> type (``ekf`` / ``iekf``) from config.yaml."""
+        out = {}
+        for f in self.config.get("filters") or []:
+            if isinstance(f, dict) and f.get("type"):
+                out[str(f.get("name") or f["type"])] = str(f["type"])
+        return out
+
+    @property
+    def percentiles(self) -> list[float]:
+        p = self.config.get("percentiles")
+        return [float(x) for x in p] if isinstance(p, list) and p else DEFAULT_PERCENTILES
+
+    @property
+    def window_start(self) -> float | None:
+        t = self.config.get("time") or {}
+        v = t.get("error_window_start_s") if isinstance(t, dict) else None
+        return float(v) if v is not None else None
+
+    @property
+    def state_dim(self) -> int | None:
+        v = self.manifest.get("state_dim")
+        return int(v) if v is not None else None
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def _read_parquet(path: Path, problems: list[str]) -> pd.DataFrame | None:
+    try:
+        return pd.read_parquet(path)
+    except Exception as exc:  # pyarrow raises several types for damaged files
+        problems.append(f"{path.name} is unreadable ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})")
+        return None
+
+
+def load_run(run_dir: Path) -> RunData:
+    """Read a run directory's tables; raise :class:`ReportError` listing everything missing or broken."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ReportError(run_dir, ["no such directory"])
+    missing = [n for n in REQUIRED_FILES if not (run_dir / n).is_file()]
+    problems = [f"missing {n}" for n in missing]
+    config: dict = {}
+    manifest: dict = {}
+    trials = None
+    if "config.yaml" not in missing:
+        try:
+            c = yaml.safe_load((run_dir / "config.yaml").read_text())
+            if isinstance(c, dict):
+                config = c
+            else:
+                problems.append("config.yaml is not a YAML mapping")
+        except yaml.YAMLError as exc:
+            problems.append(f"config.yaml is unreadable ({str(exc).splitlines()[0]})")
+    if "manifest.json" not in missing:
+        try:
+            m = json.loads((run_dir / "manifest.json").read_text())
+            if not isinstance(m, dict):
+                problems.append("manifest.json is not a JSON object")
+            elif m.get("kind") != "run":
+                problems.append(f"manifest.json has kind {m.get('kind')!r}, not 'run' (not made by 'spmc run')")
+            else:
+                manifest = m
+        except json.JSONDecodeError as exc:
+            problems.append(f"manifest.json is unreadable ({exc})")
+    if "trials.parquet" not in missing:
+        trials = _read_parquet(run_dir / "trials.parquet", problems)
+        if trials is not None:
+            absent = [c for c in TRIALS_COLUMNS if c not in trials.columns]
+            if absent:
+                problems.append(f"trials.parquet lacks columns {', '.join(absent)}")
+            elif trials.empty:
+                problems.append("trials.parquet has no rows")
+    optional: dict[str, pd.DataFrame | None] = {}
+    for name in OPTIONAL_TABLES:
+        p = run_dir / name
+        optional[name] = _read_parquet(p, problems) if p.is_file() else None
+    if problems:
+        raise ReportError(run_dir, problems)
+    return RunData(run_dir, config, manifest, trials, optional["timeseries.parquet"], optional["timing.parquet"])
+    return data
+
+
+def is_run_dir(path: Path) -> bool:
+    """A directory whose ``manifest.json`` says ``kind: run``."""
+    try:
+        m = json.loads((Path(path) / "manifest.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return isinstance(m, dict) and m.get("kind") == "run"
+
+
+def _looks_like_run(path: Path) -> bool:
+    """A directory holding any run-directory file (possibly a broken run)."""
+    return any((path / n).exists() for n in (*REQUIRED_FILES, *OPTIONAL_TABLES, "chunks", "percentiles.csv"))
+
+
+def discover(path: Path) -> tuple[list[Path], bool]:
+    """``([path], False)`` for a run directory, ``(runs, True)`` for a folder of runs.
+
+    A folder is searched recursively for run directories (``manifest.json`` with kind
+    ``run``), without descending into them. Raises :class:`ReportError` for a path that
+    is neither.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise ReportError(path, ["no such directory"])
+    if (path / "manifest.json").is_file() or _looks_like_run(path):
+        return [path], False
+    runs: list[Path] = []
+    for root, dirs, _files in os.walk(path):
+        dirs.sort()
+        r = Path(root)
+        if r != path and is_run_dir(r):
+            runs.append(r)
+            dirs.clear()
+    if not runs:
+        raise ReportError(path, ["not a run directory (no manifest.json) and no run directories below it"])
+    return runs, True
+
+
+# --------------------------------------------------------------------------- HTML helpers
+
+CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1200px;
+ padding:0 1em;color:#222;line-height:1.4}
+h1{border-bottom:2px solid #444}h2{border-bottom:1px solid #bbb;margin-top:2em}
+table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:.9em}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}th{background:#f0f0f0}
+td.l,th.l{text-align:left}.side{display:flex;flex-wrap:wrap;gap:2em;align-items:flex-start}
+.note{color:#555;font-size:.9em}figure{margin:1em 0 2em 0}figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:.9em;color:#444}code{background:#f4f4f4;padding:0 .2em}
+"""
+
+
+def esc(v: Any) -> str:
+    return html.escape(str(v), quote=True)
+
+
+def fmt_num(v: Any, digits: int = 3) -> str:
+    """Numbers with ``digits`` significant digits; ``inf`` / ``nan`` spelled out."""
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if np.isnan(v):
+            return "nan"
+        if np.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return f"{float(v):.{digits}g}"
+    return str(v)
+
+
+def fmt_value(v: Any) -> str:
+    """Config values: lists as ``[a, b]``, ``None`` as ``-``."""
+    if v is None:
+        return "-"
+    if isinstance(v, list):
+        return "[" + ", ".join(fmt_value(x) for x in v) + "]"
+    if isinstance(v, float):
+        return f"{v:g}"
+    return str(v)
+
+
+def html_table(headers: list[str], rows: list[list[Any]], left: int = 1, caption: str | None = None) -> str:
+    """An HTML table; the first ``left`` columns are left-aligned; cells are escaped."""
+    cls = lambda i: ' class="l"' if i < left else ""  # noqa: E731
+    out = ["<table>"]
+    if caption:
+        out.append(f"<caption>{esc(caption)}</caption>")
+    out.append("<tr>" + "".join(f"<th{cls(i)}>{esc(h)}</th>" for i, h in enumerate(headers)) + "</tr>")
+    for r in rows:
+        out.append("<tr>" + "".join(f"<td{cls(i)}>{c}</td>" for i, c in enumerate(r)) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def _cells(values: list[Any]) -> list[str]:
+    return [esc(fmt_num(v)) for v in values]
+
+
+def data_uri_png(path: Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
+
+
+def page(title: str, body: list[str]) -> str:
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<title>{esc(title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n" + "\n".join(body)
+            + f"\n<p class=\"note\">Written by stereopose_mc {esc(__version__)}.</p>\n</body>\n</html>\n")  # fmt: skip
+
+
+# --------------------------------------------------------------------------- report sections
+
+SUMMARY_SECTIONS = ("time", "leader", "target", "truth_initial_state", "camera", "measurements",
+                    "initial_covariance", "divergence")  # fmt: skip
+
+
+def _flatten(prefix: str, v: Any, out: list[tuple[str, str]]) -> None:
+    if isinstance(v, dict):
+        for k, x in v.items():
+            _flatten(f"{prefix}.{k}" if prefix else str(k), x, out)
+    elif prefix.endswith("feature_points_m") and isinstance(v, list):
+        out.append((prefix, f"{len(v)} points: " + fmt_value(v)))
+    else:
+        out.append((prefix, fmt_value(v)))
+
+
+def _kv(d: dict[str, Any]) -> str:
+    return ", ".join(f"{k}={fmt_value(v)}" for k, v in d.items())
+
+
+def scenario_rows(config: dict[str, Any]) -> list[tuple[str, str]]:
+    """Key parameters of the resolved scenario as (key path, value) pairs."""
+    rows = [(k, fmt_value(config.get(k))) for k in ("name", "description", "seed", "trials", "percentiles")]
+    for sec in SUMMARY_SECTIONS:
+        if sec in config:
+            _flatten(sec, config[sec], rows)
+    for f in config.get("filters") or []:
+        if isinstance(f, dict):
+            label = f.get("name") or f.get("type")
+            keep = {k: v for k, v in f.items() if k not in ("name", "measurement_noise", "process_noise")}
+            rows.append((f"filters.{label}", _kv(keep)))
+            pn = f.get("process_noise")
+            if isinstance(pn, dict):
+                rows.append((f"filters.{label}.process_noise", _kv(pn)))
+            mn = {k: v for k, v in (f.get("measurement_noise") or {}).items() if v is not None}
+            if mn:
+                rows.append((f"filters.{label}.measurement_noise", _kv(mn)))
+    return rows
+
+
+def run_fact_rows(data: RunData) -> list[tuple[str, str]]:
+    """Facts from manifest.json and the tables: version, revision, seed, trials, timing."""
+    m = data.manifest
+    chunks = m.get("chunks") or []
+    wall = sum(float(c.get("wall_s", 0.0)) for c in chunks if isinstance(c, dict))
+    rows = [(k, fmt_value(m.get(k))) for k in ("version", "git_revision", "seed", "trials", "filters", "state_dim",
+                                               "timeseries", "start", "end", "host", "scenario_hash")]  # fmt: skip
+    rows.append(("chunks", f"{len(chunks)} (sum of chunk wall times {wall:.1f} s)"))
+    if m.get("wall_s_last_session") is not None:
+        rows.append(("wall_s_last_session", fmt_value(m.get("wall_s_last_session"))))
+    cmd = m.get("command")
+    if isinstance(cmd, list):
+        rows.append(("command", " ".join(map(str, cmd))))
+    rows.append(("trials.parquet rows", f"{len(data.trials)} ({data.trials['trial'].nunique()} trials)"))
+    if data.timeseries is not None:
+        rows.append(("timeseries.parquet", f"{data.timeseries['trial'].nunique()} trials, "
+                                           f"{data.timeseries['step'].nunique()} steps"))  # fmt: skip
+    return rows
+
+
+def percentile_rows(pt: pd.DataFrame, label: str, population: str) -> list[list[str]]:
+    g = pt[(pt["filter"] == label) & (pt["population"] == population)]
+    return [[fmt_num(r["percentile"])] + _cells([r[n] for n in ERROR_NAMES]) for r in g.to_dict("records")]
+
+
+def thesis_side(pt: pd.DataFrame, label: str, case: str) -> str:
+    """Our converged table, the thesis's table and their ratio, side by side."""
+    th = thesis_percentiles(case)
+    ours = pt[(pt["filter"] == label) & (pt["population"] == "converged")].set_index("percentile")
+    ratio_rows = []
+    for r in th.to_dict("records"):
+        p = r["percentile"]
+        vals = [ours.at[p, n] / r[n] if p in ours.index and r[n] else np.nan for n in ERROR_NAMES]
+        ratio_rows.append([fmt_num(p)] + _cells(vals))
+    th_rows = [[fmt_num(r["percentile"])] + _cells([r[n] for n in ERROR_NAMES]) for r in th.to_dict("records")]
+    ours_rows = percentile_rows(pt, label, "converged")
+    return ('<div class="side">'
+            + html_table(THESIS_HEADERS, ours_rows, caption=f"this run: {label}, converged")
+            + html_table(THESIS_HEADERS, th_rows, caption=f"thesis Table {THESIS_TABLE_NUMBER[case]}: case {case}, "
+                         "IEKF, 100 trials")
+            + html_table(THESIS_HEADERS, ratio_rows, caption="ratio this run / thesis")
+            + "</div>")  # fmt: skip
+
+
+def reason_category(reason: str) -> str:
+    """A divergence reason without its numbers: ``error bound exceeded: e_rho = 1.2e3 > 1000`` ->
+    ``error bound exceeded: e_rho``."""
+    return reason.split(" = ", 1)[0].strip() or "(no reason recorded)"
+
+
+def divergence_rows(data: RunData) -> list[list[str]]:
+    """Per filter and reason: count, trials (first 10), median step (and time) of divergence."""
+    d = data.trials[data.trials["diverged"].astype(bool)]
+    t = data.config.get("time") or {}
+    dt = float(t.get("dt_s", np.nan)) if isinstance(t, dict) else np.nan
+    rows = []
+    if d.empty:
+        return rows
+    reasons = d["diverged_reason"].astype(str) if "diverged_reason" in d else pd.Series("", index=d.index)
+    d = d.assign(_cat=reasons.map(reason_category))
+    for (label, cat), g in d.groupby(["filter", "_cat"], sort=False):
+        ids = sorted(int(t) for t in g["trial"])
+        shown = ", ".join(map(str, ids[:10])) + (f", ... ({len(ids) - 10} more)" if len(ids) > 10 else "")
+        step = float(np.median(g["diverged_step"])) if "diverged_step" in g else np.nan
+        rows.append([esc(label), esc(cat), str(len(ids)), esc(shown), esc(fmt_num(step)), esc(fmt_num(step * dt))])
+    return rows
+
+
+def diagnostics_rows(data: RunData) -> list[list[str]]:
+    """Per filter: median NEES/NIS window means, mean IEKF iterations, trials with unconverged IEKF steps."""
+    rows = []
+    for label in data.filters:
+        g = data.trials[data.trials["filter"] == label]
+        col = lambda c: g[c].to_numpy(float) if c in g else np.array([np.nan])  # noqa: E731
+        with np.errstate(all="ignore"):
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                vals = [np.nanmedian(col("nees_mean")), np.nanmedian(col("nis_mean")),
+                        np.nanmean(col("iterations_mean"))]
+        unconv = int(np.sum(col("iekf_unconverged_steps") > 0)) if "iekf_unconverged_steps" in g else "-"
+        rows.append([esc(label)] + _cells(vals) + [esc(unconv)])
+    return rows
+
+
+def _figure_html(f: figs.FigureFile, root: Path) -> str:
+    png_rel = os.path.relpath(f.png, root)
+    svg_rel = os.path.relpath(f.svg, root)
+    return (f'<figure id="{esc(f.key)}"><img alt="{esc(f.title)}" src="{data_uri_png(f.png)}">'
+            f"<figcaption><b>{esc(f.title)}.</b> {esc(f.caption)} Files: <code>{esc(png_rel)}</code>, "
+            f"<code>{esc(svg_rel)}</code>.</figcaption></figure>")  # fmt: skip
+
+
+def render_report(data: RunData, fs: figs.FigureSet) -> str:
+    """The report's HTML text."""
+    pt = tables.percentile_table(data.trials, data.percentiles)
+    case = thesis_case(data.name)
+    types = data.filter_types
+    window = data.window_start
+    body = [f"<h1>{esc(data.name)}: Monte Carlo report</h1>"]
+    if data.config.get("description"):
+        body.append(f"<p>{esc(data.config['description'])}</p>")
+    body.append(f"<p class=\"note\">Run directory <code>{esc(data.path)}</code>. Errors are per-trial means over "
+                f"t &ge; {esc(fmt_value(window))} s; units: rho m, rho_dot m/s, omega deg/s, theta deg, k1 and k2 "
+                "dimensionless.</p>")  # fmt: skip
+
+    body.append("<h2>Scenario</h2>")
+    body.append(html_table(["key", "value"], [[esc(k), esc(v)] for k, v in scenario_rows(data.config)], left=2))
+    body.append("<h2>Run</h2>")
+    body.append(html_table(["key", "value"], [[esc(k), esc(v)] for k, v in run_fact_rows(data)], left=2))
+    body.append("<h2>Percentile tables</h2>")
+    for label in data.filters:
+        g = pt[pt["filter"] == label]
+        if g.empty:
+            continue
+        n, nd = int(g["trials"].iloc[0]), int(g["diverged"].iloc[0])
+        kind = types.get(label, "?")
+        body.append(f"<h3>{esc(label)} ({esc(kind)}): {n - nd} of {n} trials converged, {nd} diverged</h3>")
+        if case is not None and kind == "iekf":
+            body.append(thesis_side(pt, label, case))
+        else:
+            body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "converged"), caption="converged trials"))
+        if nd:
+            body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "all"),
+                                   caption="all trials (a diverged trial counts as +inf)"))  # fmt: skip
+    if case is not None and not any(types.get(f) == "iekf" for f in data.filters):
+        th = thesis_percentiles(case)
+        rows = [[fmt_num(r["percentile"])] + _cells([r[n] for n in ERROR_NAMES]) for r in th.to_dict("records")]
+        cap = f"thesis Table {THESIS_TABLE_NUMBER[case]}: case {case}, IEKF, 100 trials"
+        body.append(html_table(THESIS_HEADERS, rows, caption=cap))
+
+    body.append("<h2>Divergence</h2>")
+    drows = divergence_rows(data)
+    if drows:
+        heads = ["filter", "reason", "trials", "trial ids", "median step", "median t [s]"]
+        body.append(html_table(heads, drows, left=2))
+    else:
+        body.append("<p>No trial diverged.</p>")
+
+    body.append("<h2>Filter diagnostics</h2>")
+    body.append(html_table(["filter", "median NEES (window mean)", "median NIS (window mean)",
+                            "mean IEKF iterations per step", "trials with unconverged IEKF steps"],
+                           diagnostics_rows(data)))  # fmt: skip
+
+    body.append("<h2>Compute time per trial</h2>")
+    if data.timing is not None and not data.timing.empty:
+        ct = figs.compute_time_table(data.timing)
+        rows = [[esc(r["filter"]), str(r["trials"])] + _cells([r["max_s"], r["mean_s"], r["min_s"]])
+                for r in ct.to_dict("records")]  # fmt: skip
+        if case == "B":
+            t = THESIS_COMPUTE_TIME_CASE_B_S
+            rows.append(["thesis Table 6.7 (IEKF, MATLAB, Xeon E5-2609)", "200"]
+                        + _cells([t["max"], t["mean"], t["min"]]))
+        body.append(html_table(["filter", "trials", "max [s]", "mean [s]", "min [s]"], rows))
+    else:
+        body.append("<p>No timing.parquet in this run.</p>")
+
+    body.append("<h2>Figures</h2>")
+    for f in fs.figures:
+        body.append(_figure_html(f, data.path))
+    notes = data.notes + fs.notes
+    if notes:
+        body.append("<h2>Notes</h2><ul>" + "".join(f"<li>{esc(n)}</li>" for n in notes) + "</ul>")
+
+    return page(f"{data.name}: Monte Carlo report", body)
+
+
+def build_run_report(run_dir: Path) -> Path:
+    """Regenerate ``DIR/figures/`` from the run's tables and write ``DIR/report.html``; return its path.
+
+    Raises :class:`ReportError` (listing every missing or unreadable file) for a broken
+    or partial run directory; nothing is written then.
+    """
+    data = load_run(Path(run_dir))
+    fs = figs.build_figures(data.path / "figures", data.trials, data.timeseries, data.timing,
+                            filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
+                            window_start=data.window_start, percentiles=data.percentiles)  # fmt: skip
+    out = data.path / "report.html"
+    rundir.atomic_write_text(out, render_report(data, fs))
+    return out
+
+
+# --------------------------------------------------------------------------- index of several runs
+
+INDEX_PERCENTILES = (50.0, 90.0)
+
+
+def index_rows(data: RunData, link: str, shown: str) -> list[list[str]]:
+    """One row per filter: run link, filter, trials, diverged, median and p90 of each error (converged)."""
+    pt = tables.percentile_table(data.trials, list(INDEX_PERCENTILES))
+    rows = []
+    for label in data.filters:
+        g = pt[(pt["filter"] == label) & (pt["population"] == "converged")].set_index("percentile")
+        if g.empty:
+            continue
+        n, nd = int(g["trials"].iloc[0]) + int(g["diverged"].iloc[0]), int(g["diverged"].iloc[0])
+        cells = [f'<a href="{esc(link)}">{esc(shown)}</a>', esc(data.name), esc(label), str(n), str(nd)]
+        for name in ERROR_NAMES:
+            cells += _cells([g.at[p, name] for p in INDEX_PERCENTILES])
+        rows.append(cells)
+    return rows
+
+
+def build_index(folder: Path, runs: list[Path], failed: dict[Path, list[str]] | None = None) -> Path:
+    """Write ``folder/index.html`` comparing ``runs`` side by side; list ``failed`` runs with their problems."""
+    folder = Path(folder)
+    headers = ["run", "scenario", "filter", "trials", "diverged"]
+    for name in ERROR_NAMES:
+        headers += [f"{ERROR_LABELS[name]} p50", f"{ERROR_LABELS[name]} p90"]
+    rows = []
+    for r in runs:
+        data = load_run(r)
+        rel = os.path.relpath(r, folder).replace(os.sep, "/")
+        rows += index_rows(data, f"{rel}/report.html", rel)
+    body = [f"<h1>Monte Carlo runs in {esc(folder.name or folder)}</h1>",
+            "<p class=\"note\">Median (p50) and 90th percentile (p90) of the per-trial mean errors over the "
+            "converged trials of each run and filter; units m, m/s, deg/s, deg, -, -. The run name links to its "
+            "report.</p>", html_table(headers, rows, left=3)]  # fmt: skip
+    if failed:
+        body.append("<h2>Runs without a report</h2><ul>")
+        body += [f"<li><code>{esc(os.path.relpath(p, folder))}</code>: {esc('; '.join(pr))}</li>"
+                 for p, pr in failed.items()]
+        body.append("</ul>")
+    out = folder / "index.html"
+    rundir.atomic_write_text(out, page(f"Monte Carlo runs in {folder.name}", body))
+    return out

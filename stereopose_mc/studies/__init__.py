@@ -1,0 +1,8 @@
+"""Model studies of the thesis (chapter 2): relative-dynamics models compared.
+
+- :mod:`.cw`: closed-form Clohessy-Wiltshire propagation and state-transition matrix;
+- :mod:`.coupled`: the simplified coupled feature-point model (the package's) and the fully
+  coupled Segal-Gurfil model (thesis eqs. 2.40-2.42, misprints corrected), batched;
+- :mod:`.dynamics_study`: the studies of thesis section 2.5 as figures and tables
+  (``spmc dynamics``).
+"""
