@@ -96,6 +96,8 @@ MEANINGS = {
     "divergence.rho_dot_mps": "Same for the velocity error.",
     "divergence.omega_degps": "Same for the angular-velocity error.",
     "divergence.k": "Same for the error of k1 or k2.",
+    "divergence.nis_window_steps": "Steps over which the NIS is averaged for the lost-filter test.",
+    "divergence.nis_start_s": "Time from which the lost-filter (NIS) test applies; the first updates are far from linear.",
 }  # fmt: skip
 
 FILTER_MEANINGS = {

@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from ..core import state as st
 from ..core.orbit import Orbit
-from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, Scenario
+from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
 DEG = np.pi / 180.0
 Array = NDArray[np.float64]
@@ -34,6 +34,15 @@ class Setup:
     sigma_alpha: float
     P0_diag: Array
     truth_rtol: float
+    # angular-acceleration source of the pseudo-measurement (docs/angular-acceleration.md)
+    alpha_method: str = "truth_plus_noise"
+    alpha_window: int = 9
+    alpha_polyorder: int = 2
+    alpha_tikhonov_lambda: float = 100.0
+    alpha_tikhonov_order: int = 2
+    alpha_td_r: float = 0.05  # rad/s^3
+    alpha_td_h0: float = 1.5  # s
+    alpha_sigma_floor: float = 1e-9  # rad/s^2
 
     @property
     def n_points(self) -> int:
@@ -86,6 +95,21 @@ def setup_of(s: Scenario) -> Setup:
         sigma_alpha=m.inertia_pseudo_measurement.angular_acceleration_sigma_radps2,
         P0_diag=block_diag(s.initial_covariance, len(pts)),
         truth_rtol=s.time.truth_rtol,
+        **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
+    )
+
+
+def _alpha_options(p: PseudoMeasurementConfig, dt: float) -> dict:
+    """The ``alpha_*`` fields of ``Setup`` (SI; ``h0 = td_h0_steps dt``)."""
+    return dict(
+        alpha_method=p.angular_acceleration,
+        alpha_window=p.window,
+        alpha_polyorder=p.polyorder,
+        alpha_tikhonov_lambda=p.tikhonov_lambda,
+        alpha_tikhonov_order=p.tikhonov_order,
+        alpha_td_r=p.td_r_radps3,
+        alpha_td_h0=p.td_h0_steps * dt,
+        alpha_sigma_floor=p.sigma_floor_radps2,
     )
 
 

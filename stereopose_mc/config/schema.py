@@ -20,7 +20,7 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True)
+    model_config = ConfigDict(extra="forbid", validate_default=True, allow_inf_nan=False)
 
 
 class TimeConfig(_Model):
@@ -96,9 +96,51 @@ class CameraConfig(_Model):
 
 
 class PseudoMeasurementConfig(_Model):
+    """Inertia pseudo-measurement; the angular-acceleration sources are in docs/angular-acceleration.md."""
+
     enabled: bool = True
     angular_acceleration_sigma_radps2: Pos = 1e-6
-    angular_acceleration: Literal["truth_plus_noise"] = "truth_plus_noise"
+    angular_acceleration: Literal["truth_plus_noise", "savitzky_golay", "tikhonov", "tracking_differentiator"] = (
+        "truth_plus_noise"
+    )
+    window: Annotated[int, Field(ge=3, le=1001)] = Field(
+        default=9,
+        description="Samples of the filter's own omega estimates the differentiators use (the newest ending at the "
+        "sample where alpha is needed); the pseudo rows are skipped until that many exist. For the tracking "
+        "differentiator (which uses every sample): its warm-up.",
+    )
+    polyorder: Annotated[int, Field(ge=1)] = Field(
+        default=2, description="savitzky_golay: degree p of the local least-squares polynomial (1 <= p < window)."
+    )
+    tikhonov_lambda: Pos = Field(
+        default=100.0,
+        description="tikhonov: dimensionless regularization weight lam in ||A s - (w - w_0)||^2 + lam ||D s||^2 "
+        "(s = alpha dt).",
+    )
+    tikhonov_order: Literal[1, 2] = Field(
+        default=2, description="tikhonov: order of the difference operator D (exact for polynomials of this degree)."
+    )
+    td_r_radps3: Pos = Field(
+        default=0.05,
+        description="tracking_differentiator: Han's speed factor r, the bound on |d alpha/dt| of the differentiator's "
+        "state; keep r h0^2 above the largest expected jump of the omega estimate (linear zone).",
+    )
+    td_h0_steps: Annotated[float, Field(ge=1.0, le=1000.0)] = Field(
+        default=1.5,
+        description="tracking_differentiator: Han's filtering factor h0 in time steps (h0 = td_h0_steps dt_s).",
+    )
+    sigma_floor_radps2: Pos = Field(
+        default=1e-9,
+        description="Differentiated sources: lower bound on the pseudo-measurement standard deviation the filter uses.",
+    )
+
+    @model_validator(mode="after")
+    def _differentiator_options(self):
+        if self.polyorder >= self.window:
+            raise ValueError(f"polyorder ({self.polyorder}) must be less than window ({self.window})")
+        if self.angular_acceleration == "tikhonov" and self.window < self.tikhonov_order + 2:
+            raise ValueError(f"tikhonov needs window >= tikhonov_order + 2 = {self.tikhonov_order + 2}")
+        return self
 
 
 class MeasurementsConfig(_Model):
@@ -152,7 +194,7 @@ class _FilterBase(_Model):
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
     transition: Literal["expm", "taylor"] = "taylor"
     taylor_order: Annotated[int, Field(ge=1, le=12)] = 4
-    integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 2
+    integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 1
 
     @property
     def label(self) -> str:
@@ -168,7 +210,7 @@ class IEKFConfig(_FilterBase):
     tolerance: Pos = 0.01
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 10
     step_control: Literal["line_search", "levenberg_marquardt", "none"] = "line_search"
-    stopping: Literal["mahalanobis", "scaled", "raw"] = "mahalanobis"
+    stopping: Literal["mahalanobis", "prior", "scaled", "raw"] = "mahalanobis"
 
 
 FilterConfig = Annotated[Union[IEKFConfig, EKFConfig], Field(discriminator="type")]
@@ -181,6 +223,13 @@ class DivergenceConfig(_Model):
     rho_dot_mps: Pos = 100.0
     omega_degps: Pos = 180.0
     k: Pos = 20.0
+    nis_ratio: Pos = Field(
+        default=100.0,
+        description="a trial is lost when its NIS averaged over nis_window_steps exceeds nis_ratio times its "
+        "expected value (the measurement dimension), from nis_start_s on",
+    )
+    nis_window_steps: Annotated[int, Field(ge=1)] = 10
+    nis_start_s: NonNeg = 10.0
 
 
 class Scenario(_Model):
@@ -201,9 +250,10 @@ class Scenario(_Model):
     percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
     divergence: DivergenceConfig = DivergenceConfig()
 
-    @model_validator(mode="after")
-    def _checks(self):
-        labels = [f.label for f in self.filters]
+    @field_validator("filters")
+    @classmethod
+    def _unique_labels(cls, v):
+        labels = [f.label for f in v]
         if len(set(labels)) != len(labels):
             raise ValueError(f"filter labels must be unique (got {labels}); give each a 'name'")
-        return self
+        return v

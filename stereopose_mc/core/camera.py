@@ -33,9 +33,9 @@ def channels(disparity: bool) -> tuple[str, ...]:
 def feature_kinematics(x: Array) -> tuple[Array, Array]:
     """Positions and velocities ``(..., N, 3)`` of the feature points in ``L``."""
     D = qt.dcm(x[..., st.QUAT])
-    r = np.einsum("...ij,...nj->...ni", D, st.points(x))
+    r = st.points(x) @ np.swapaxes(D, -1, -2)
     rho_i = x[..., None, st.RHO] + r
-    rho_dot_i = x[..., None, st.RHO_DOT] + np.cross(x[..., None, st.OMEGA], r)
+    rho_dot_i = x[..., None, st.RHO_DOT] + qt.cross(x[..., None, st.OMEGA], r)
     return rho_i, rho_dot_i
 
 

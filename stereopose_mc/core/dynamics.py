@@ -50,7 +50,7 @@ def omega_leader(nu_dot, shape=()) -> Array:
 def euler_body_rate(w_T: Array, inertia: Array, torque_T: Array | None = None) -> Array:
     """``w_T' = I^-1 (N - w_T x I w_T)`` for principal moments ``inertia (...,3)``."""
     Iw = inertia * w_T
-    rhs = -np.cross(w_T, Iw)
+    rhs = -qt.cross(w_T, Iw)
     if torque_T is not None:
         rhs = rhs + torque_T
     return rhs / inertia
@@ -60,12 +60,12 @@ def rotational_rates(omega: Array, q: Array, k: Array, nu_dot, nu_ddot) -> tuple
     """``(w', q')`` of the relative rotation, both in the layout of the state."""
     D = qt.dcm(q)
     wL = omega_leader(nu_dot, omega.shape[:-1])
-    w_T = np.einsum("...ji,...j->...i", D, omega + wL)
+    w_T = qt.rmatvec(D, omega + wL)
     w_T_dot = euler_body_rate(w_T, st.inertia_diag(k))
-    omega_dot = np.einsum("...ij,...j->...i", D, w_T_dot) - np.cross(wL, omega)
+    omega_dot = qt.matvec(D, w_T_dot) - qt.cross(wL, omega)
     omega_dot[..., 2] -= nu_ddot
-    w_rel_T = np.einsum("...ji,...j->...i", D, omega)
-    q_dot = 0.5 * np.einsum("...ij,...j->...i", qt.omega_matrix(q), w_rel_T)
+    w_rel_T = w_T - qt.rmatvec(D, wL)
+    q_dot = 0.5 * qt.multiply(q, np.concatenate([np.zeros(w_rel_T.shape[:-1] + (1,)), w_rel_T], axis=-1))
     return omega_dot, q_dot
 
 
@@ -90,16 +90,27 @@ def f_at(x: Array, t: float, orbit: Orbit) -> Array:
 
 def rk4_step(x: Array, t: float, h: float, orbit: Orbit) -> Array:
     """One classical Runge-Kutta step of length ``h`` from ``(t, x)``."""
-    k1 = f_at(x, t, orbit)
-    k2 = f_at(x + 0.5 * h * k1, t + 0.5 * h, orbit)
-    k3 = f_at(x + 0.5 * h * k2, t + 0.5 * h, orbit)
-    k4 = f_at(x + h * k3, t + h, orbit)
-    return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return propagate(x, t, h, orbit, 1)
 
 
 def propagate(x: Array, t: float, dt: float, orbit: Orbit, substeps: int = 1) -> Array:
-    """Integrate ``f`` from ``t`` to ``t + dt`` with ``substeps`` RK4 steps."""
+    """Integrate ``f`` from ``t`` to ``t + dt`` with ``substeps`` classical RK4 steps.
+
+    The leader's kinematics are evaluated once for all the stage times (a shared time
+    for every trial of the batch).
+    """
     h = dt / substeps
+    lk = leader_kinematics(orbit, t + 0.5 * h * np.arange(2 * substeps + 1))
+    mu = orbit.mu
+
+    def fk(y, i):
+        return f(y, lk.r[i], lk.nu_dot[i], lk.nu_ddot[i], mu)
+
     for j in range(substeps):
-        x = rk4_step(x, t + j * h, h, orbit)
+        i = 2 * j
+        k1 = fk(x, i)
+        k2 = fk(x + 0.5 * h * k1, i + 1)
+        k3 = fk(x + 0.5 * h * k2, i + 1)
+        k4 = fk(x + h * k3, i + 2)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
     return x

@@ -28,9 +28,9 @@ def h_pseudo(x: Array, alpha: Array, nu_dot, nu_ddot) -> Array:
     omega = x[..., st.OMEGA]
     D = qt.dcm(x[..., st.QUAT])
     wL = omega_leader(nu_dot, omega.shape[:-1])
-    a = alpha + np.cross(wL, omega)
+    a = alpha + qt.cross(wL, omega)
     a[..., 2] += nu_ddot
-    w_T = np.einsum("...ji,...j->...i", D, omega + wL)
+    w_T = qt.rmatvec(D, omega + wL)
     inertia = st.inertia_diag(x[..., st.k_slice(N)])
-    gyro = np.cross(w_T, inertia * w_T) / inertia
-    return np.einsum("...ji,...j->...i", D, a) + gyro
+    gyro = qt.cross(w_T, inertia * w_T) / inertia
+    return qt.rmatvec(D, a) + gyro

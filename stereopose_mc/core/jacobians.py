@@ -104,11 +104,7 @@ def _T(a: Array) -> Array:
     return np.swapaxes(a, -1, -2)
 
 
-def _cross(a: Array, b: Array) -> Array:
-    """``a x b`` over the last axis, broadcasting (faster than ``np.cross`` on small stacks)."""
-    a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2]
-    b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], axis=-1)
+_cross = qt.cross
 
 
 def _skew(v: Array) -> Array:

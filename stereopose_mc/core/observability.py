@@ -40,6 +40,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .quaternion import dcm, omega_matrix
+from .state import POINTS0, QUAT
+from .state import n_points as n_points_of
+
 Array = NDArray[np.float64]
 
 STATE_NAMES: tuple[str, ...] = ("w_x", "w_y", "w_z", "I_x", "I_y", "I_z")
@@ -260,3 +264,247 @@ def euler_rank_test(omega: Array, inertia: Array, order: int = 1, rtol: float = 
         raise ValueError(f"need finite omega and positive finite inertia, got {omega}, {inertia}")
     x = np.concatenate([omega, inertia])
     return rank_analysis(observability_matrix(x, order), euler_scale(x), rtol, sign_component=3)
+
+
+# --------------------------------------------------------------------------- filter state (Gramian)
+#
+# The local observability of the whole filter state x = [rho, rho_dot, omega, q, P_1..P_N,
+# k1, k2] along a trajectory, from the discrete observability Gramian of the linearized
+# model (the filter's own Jacobians F, H at the true states):
+#
+#     W = sum_k Phi(t_k, t_0)^T H_k^T R_k^-1 H_k Phi(t_k, t_0)
+#
+# ``delta x_0^T W delta x_0`` is the squared whitened change of all measurements caused by
+# an initial perturbation ``delta x_0`` (to first order); ``W`` is the Fisher information
+# about ``x_0`` from the measurements, so ``(W + P0^-1)^-1`` is the (linearized, no
+# process noise) Cramer-Rao bound on the posterior covariance of ``x_0``.
+
+
+def cumulative_transitions(step_transitions: Array) -> Array:
+    """``Phi(t_k, t_0)`` ``(..., K+1, n, n)`` from the one-step ``Phi(t_{k+1}, t_k)`` ``(..., K, n, n)``.
+
+    ``Phi(t_0, t_0) = I`` and ``Phi(t_{k+1}, t_0) = Phi(t_{k+1}, t_k) Phi(t_k, t_0)``.
+    """
+    steps = np.asarray(step_transitions, dtype=float)
+    if steps.ndim < 3 or steps.shape[-1] != steps.shape[-2]:
+        raise ValueError(f"step transitions must be (..., K, n, n), got shape {steps.shape}")
+    batch, K, n = steps.shape[:-3], steps.shape[-3], steps.shape[-1]
+    out = np.empty(batch + (K + 1, n, n))
+    out[..., 0, :, :] = np.eye(n)
+    for k in range(K):
+        out[..., k + 1, :, :] = steps[..., k, :, :] @ out[..., k, :, :]
+    return out
+
+
+def whitened_observability_matrix(step_transitions: Array, H: Array, weights: Array) -> Array:
+    """The stacked rows ``sqrt(w_k) H_k Phi(t_k, t_0)`` ``(..., (K+1) m, n)``, so ``W = O_w^T O_w``.
+
+    ``H (..., K+1, m, n)``: the measurement Jacobians at ``t_0..t_K`` (a fixed number ``m``
+    of rows per time: rows that are absent at a time, e.g. invisible features, get weight
+    0); ``weights (..., K+1, m)``: the inverse noise variances ``1 / sigma^2`` (``R_k`` is
+    diagonal), 0 for absent rows.
+    """
+    H = np.asarray(H, dtype=float)
+    w = np.asarray(weights, dtype=float)
+    if H.ndim < 3 or w.shape != H.shape[:-1]:
+        raise ValueError(f"H (..., K+1, m, n) and weights (..., K+1, m) do not match: {H.shape}, {w.shape}")
+    if np.any(w < 0) or not np.all(np.isfinite(w)):
+        raise ValueError("weights (inverse variances) must be finite and >= 0")
+    Phi = cumulative_transitions(step_transitions)
+    if Phi.shape[-3] != H.shape[-3] or Phi.shape[-1] != H.shape[-1]:
+        raise ValueError(f"{Phi.shape[-3] - 1} transitions and {H.shape[-3]} measurement times do not match")
+    rows = np.sqrt(w)[..., None] * (H @ Phi)
+    return rows.reshape(rows.shape[:-3] + (rows.shape[-3] * rows.shape[-2], rows.shape[-1]))
+
+
+def observability_gramian(step_transitions: Array, H: Array, weights: Array) -> Array:
+    """``W = sum_k Phi(t_k,t_0)^T H_k^T diag(w_k) H_k Phi(t_k,t_0)`` ``(..., n, n)``, symmetric.
+
+    Arguments as in :func:`whitened_observability_matrix`; ``W = O_w^T O_w``.
+    """
+    O = whitened_observability_matrix(step_transitions, H, weights)
+    W = np.swapaxes(O, -1, -2) @ O
+    return 0.5 * (W + np.swapaxes(W, -1, -2))
+
+
+def filter_state_names(n_points: int) -> tuple[str, ...]:
+    """``rho_x, ..., rho_dot_x, ..., omega_x, ..., q0..q3, P1_x, ..., PN_z, k1, k2``."""
+    xyz = ("x", "y", "z")
+    names = [f"{b}_{a}" for b in ("rho", "rho_dot", "omega") for a in xyz]
+    names += [f"q{i}" for i in range(4)]
+    names += [f"P{i + 1}_{a}" for i in range(n_points) for a in xyz]
+    return tuple(names + ["k1", "k2"])
+
+
+def quaternion_norm_direction(x: Array) -> Array:
+    """``e_q = [0, 0, 0, q, 0, ..., 0]`` ``(..., n)``: scaling ``q`` changes neither ``f``'s
+    attitude (``D(q)`` is normalized) nor ``h``, so ``H e_q = 0`` and, along the true flow,
+    ``Phi(t, t_0) e_q(t_0) = e_q(t)`` (``F e_q = [0, 0, 0, q', 0]``): unobservable by construction."""
+    x = np.asarray(x, dtype=float)
+    out = np.zeros_like(x)
+    out[..., QUAT] = x[..., QUAT]
+    return out
+
+
+def gauge_directions(x: Array) -> Array:
+    """The body-frame gauge ``(..., n, 3)``: column ``j`` rotates the body frame by a small
+    angle about its axis ``j`` and the feature points with it:
+
+        delta q = 1/2 Q(q) e_j  (q -> q (x) [1, e_j/2]),   delta P_i = P_i x e_j
+
+    so ``D(q) P_i`` and every image are unchanged to first order (``H g_j = 0``). Only the
+    dynamics see it: the inertia is diagonal in the body frame, so rotating that frame
+    changes Euler's equations unless the target spins about a principal axis or is spherical.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[-1]
+    N = n_points_of(n)
+    Q = omega_matrix(x[..., QUAT])  # (..., 4, 3)
+    P = x[..., POINTS0 : POINTS0 + 3 * N].reshape(x.shape[:-1] + (N, 3))
+    out = np.zeros(x.shape + (3,))
+    out[..., QUAT, :] = 0.5 * Q
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = 1.0
+        out[..., POINTS0 : POINTS0 + 3 * N, j] = np.cross(P, e).reshape(x.shape[:-1] + (3 * N,))
+    return out
+
+
+def com_shift_directions(x: Array) -> Array:
+    """Moving the centre of mass inside the feature cloud ``(..., n, 3)``: column ``j`` is
+
+        delta P_i = e_j (all i),   delta rho = -D e_j,   delta rho_dot = -omega x (D e_j)
+
+    which leaves every ``rho_i = rho + D P_i`` and ``rho_dot_i = rho_dot + omega x D P_i``
+    (so every image) unchanged at ``t_0``. Only the motion reveals the centre of mass (the
+    centre of the rotation), so these directions are weak at slow spin.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.shape[-1]
+    N = n_points_of(n)
+    D = dcm(x[..., QUAT])  # (..., 3, 3)
+    w = x[..., 6:9]
+    out = np.zeros(x.shape + (3,))
+    out[..., 0:3, :] = -D
+    out[..., 3:6, :] = -np.cross(w[..., None, :], np.swapaxes(D, -1, -2)).swapaxes(-1, -2)
+    for i in range(N):
+        out[..., POINTS0 + 3 * i : POINTS0 + 3 * i + 3, :] = np.eye(3)
+    return out
+
+
+def scaled_basis(directions: Array, scale: Array) -> Array:
+    """Orthonormal basis ``(n, r)`` of ``span(S^-1 directions)``, ``S = diag(scale)``: the
+    directions ``(n, r)`` expressed in the scaled coordinates ``z = S^-1 delta x``."""
+    d = np.asarray(directions, dtype=float)
+    if d.ndim == 1:
+        d = d[:, None]
+    Q, _ = np.linalg.qr(d / np.asarray(scale, dtype=float)[:, None])
+    return Q
+
+
+@dataclass(frozen=True)
+class GramianEigen:
+    """Result of :func:`gramian_eigen` (everything in the scaled coordinates ``z = S^-1 delta x``).
+
+    ``eigenvalues``: ascending, of ``W~ = S W S`` restricted to the complement of ``fixed``;
+    ``eigenvectors``: ``(n, n - r)`` unit columns (``S`` times a column is the physical
+    direction); ``lambda_max``: the largest eigenvalue; ``floor``: ``n eps lambda_max``,
+    below which an eigenvalue is zero to round-off; ``fixed``: the ``(n, r)`` orthonormal
+    directions projected out, with their Rayleigh quotients ``fixed_rayleigh = u^T W~ u``.
+    """
+
+    eigenvalues: Array
+    eigenvectors: Array
+    lambda_max: float
+    floor: float
+    fixed: Array
+    fixed_rayleigh: Array
+    scaled_gramian: Array
+
+
+def gramian_eigen(W: Array, scale: Array, fixed: Array | None = None) -> GramianEigen:
+    """Eigen-decomposition of one Gramian ``W (n, n)`` in scaled, unit-free coordinates.
+
+    ``W~ = S W S`` with ``S = diag(scale)`` (a characteristic size of each state component:
+    ``z^T W~ z`` is the whitened squared measurement change for a step of ``z`` such sizes).
+    With ``B`` an orthonormal basis of the complement of the orthonormal columns ``fixed``
+    (``(n, r)``, scaled coordinates, e.g. the quaternion-norm direction), the eigenpairs of
+    ``B^T W~ B`` (``np.linalg.eigh``, ascending) mapped back by ``B``.
+    """
+    W = np.asarray(W, dtype=float)
+    s = np.asarray(scale, dtype=float)
+    n = W.shape[-1]
+    if W.shape != (n, n) or s.shape != (n,):
+        raise ValueError(f"gramian_eigen takes one (n, n) Gramian and (n,) scales, got {W.shape}, {s.shape}")
+    if np.any(~np.isfinite(s)) or np.any(s <= 0) or not np.all(np.isfinite(W)):
+        raise ValueError("the Gramian must be finite and the scales positive and finite")
+    Ws = s[:, None] * W * s[None, :]
+    Ws = 0.5 * (Ws + Ws.T)
+    U = np.zeros((n, 0)) if fixed is None else np.asarray(fixed, dtype=float).reshape(n, -1)
+    r = U.shape[1]
+    if r and not np.allclose(U.T @ U, np.eye(r), atol=1e-10):
+        raise ValueError("fixed directions must be orthonormal columns (use scaled_basis)")
+    full, _, _ = np.linalg.svd(U, full_matrices=True) if r else (np.eye(n), None, None)
+    B = full[:, r:]
+    lam, Y = np.linalg.eigh(B.T @ Ws @ B)
+    V = B @ Y
+    V = np.stack([_fix_sign(V[:, i], int(np.argmax(np.abs(V[:, i])))) for i in range(V.shape[1])], axis=1)
+    lam_max = float(np.linalg.eigvalsh(Ws)[-1])
+    rayleigh = np.einsum("ir,ij,jr->r", U, Ws, U)
+    return GramianEigen(
+        eigenvalues=lam,
+        eigenvectors=V,
+        lambda_max=lam_max,
+        floor=float(n * np.finfo(float).eps * lam_max),
+        fixed=U,
+        fixed_rayleigh=rayleigh,
+        scaled_gramian=Ws,
+    )
+
+
+def describe_direction(v: Array, names, min_abs: float = 0.1, max_terms: int = 6) -> list[tuple[str, float]]:
+    """The largest components of a unit direction ``v`` by name, in decreasing magnitude:
+    those with ``|v_i| >= min_abs`` (at least one, at most ``max_terms``)."""
+    v = np.asarray(v, dtype=float)
+    order = np.argsort(-np.abs(v), kind="stable")
+    keep = [i for i in order[:max_terms] if abs(v[i]) >= min_abs] or [int(order[0])]
+    return [(names[i], float(v[i])) for i in keep]
+
+
+def subspace_share(v: Array, basis: Array) -> float:
+    """``|B^T v|^2 / |v|^2``: the fraction of ``v`` in the span of the orthonormal columns ``B``."""
+    v = np.asarray(v, dtype=float)
+    return float(np.sum((np.asarray(basis).T @ v) ** 2) / np.dot(v, v))
+
+
+def crlb_covariance(W: Array, prior_diag: Array, no_prior: Array | None = None) -> Array:
+    """``(W + P0^-1)^-1`` ``(n, n)`` for a diagonal prior ``P0 = diag(prior_diag)``.
+
+    Computed in the scaled coordinates ``S = diag(sqrt(prior_diag))``, where the information
+    is ``J~ = S W S + I`` (well scaled), by its Cholesky factor. ``no_prior`` (boolean
+    ``(n,)``) drops the prior of those components (their ``1`` on the diagonal), e.g. to see
+    what the measurements alone say about ``k`` given the prior on the rest; ``J~`` must
+    then still be positive definite.
+
+    NOTE: this forms an inverse (Cholesky solve with the identity's columns). That is
+    acceptable here ONLY because the result is a report (its diagonal and small blocks);
+    no estimator uses it.
+    """
+    from scipy.linalg import cho_factor, cho_solve
+
+    W = np.asarray(W, dtype=float)
+    p = np.asarray(prior_diag, dtype=float)
+    n = W.shape[-1]
+    if W.shape != (n, n) or p.shape != (n,) or np.any(~np.isfinite(p)) or np.any(p <= 0):
+        raise ValueError("crlb_covariance takes one (n, n) W and (n,) positive prior variances")
+    s = np.sqrt(p)
+    J = s[:, None] * W * s[None, :]
+    d = np.ones(n) if no_prior is None else np.where(np.asarray(no_prior, bool), 0.0, 1.0)
+    J = 0.5 * (J + J.T) + np.diag(d)
+    C = cho_solve(cho_factor(J, lower=True), np.eye(n))
+    return s[:, None] * C * s[None, :]
+
+
+def crlb_sigma(W: Array, prior_diag: Array, no_prior: Array | None = None) -> Array:
+    """``sqrt(diag((W + P0^-1)^-1))`` ``(n,)`` (see :func:`crlb_covariance`)."""
+    return np.sqrt(np.diag(crlb_covariance(W, prior_diag, no_prior)))

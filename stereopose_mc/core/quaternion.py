@@ -84,6 +84,23 @@ def omega_matrix(q: Array) -> Array:
     return Q
 
 
+def cross(a: Array, b: Array) -> Array:
+    """``a x b`` over the last axis, broadcasting (cheaper than ``np.cross`` on small stacks)."""
+    a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2]
+    b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], axis=-1)
+
+
+def matvec(M: Array, v: Array) -> Array:
+    """``M v`` over the last axes (``M (...,i,j)``, ``v (...,j)``)."""
+    return (M @ v[..., None])[..., 0]
+
+
+def rmatvec(M: Array, v: Array) -> Array:
+    """``M^T v`` over the last axes."""
+    return (v[..., None, :] @ M)[..., 0, :]
+
+
 def skew(v: Array) -> Array:
     """Cross-product matrix ``[v x]`` (``...,3,3``): ``skew(a) @ b == cross(a, b)``."""
     v = np.asarray(v, dtype=float)

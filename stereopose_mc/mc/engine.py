@@ -32,6 +32,7 @@ from typing import Callable, Iterable
 import numpy as np
 import pandas as pd
 import yaml
+from threadpoolctl import threadpool_limits
 
 from ..config.resolve import filter_setup_of, setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
@@ -64,7 +65,7 @@ def _prepared(scenario_json: str):
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
-    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k)
+    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
     return scn, setup, truth, exact, filters, bounds
 
 
@@ -79,9 +80,15 @@ class ChunkOutput:
 
 
 def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> ChunkOutput:
-    """Run one chunk of trials (any process): pure function of its arguments."""
-    scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
-    res = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds)
+    """Run one chunk of trials (any process): pure function of its arguments.
+
+    BLAS runs single-threaded here: a multithreaded BLAS splits a product or a solve
+    differently with the thread count, which changes the last bits of the results.
+    Parallelism comes from the chunks instead.
+    """
+    with threadpool_limits(limits=1):
+        scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
+        res = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds)
     tdf = tables.trials_frame(res, truth.t, setup.window_start, scn.seed)
     ts = None
     if timeseries != "none":

@@ -7,13 +7,16 @@ diverged: it is marked with the step and the reason, its later errors are NaN, a
 never stops the others.
 
 Divergence (documented in docs/filters.md): a non-finite state or covariance, a
-covariance that is not positive definite (Cholesky fails), or an error beyond the
-scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``).
+covariance that is not positive definite (Cholesky fails), an error beyond the
+scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``), or
+a lost filter: from ``nis_start_s`` on, its NIS averaged over the last
+``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,10 +37,15 @@ ERROR_NAMES = ("e_rho", "e_rho_dot", "e_omega", "e_theta", "e_k1", "e_k2")
 
 @dataclass(frozen=True)
 class Bounds:
+    """Divergence bounds (the scenario's ``divergence`` block, in its units)."""
+
     rho_m: float = 1000.0
     rho_dot_mps: float = 100.0
     omega_degps: float = 180.0
     k: float = 20.0
+    nis_ratio: float = 100.0
+    nis_window_steps: int = 10
+    nis_start_s: float = 10.0
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -135,7 +143,9 @@ def run_filter(
     err = np.full((B, K + 1, 6), np.nan)
     nees = np.full((B, K + 1), np.nan)
     nis = np.full((B, K + 1), np.nan)
-    nis_dof = np.zeros(K + 1, int)
+    # measurement dimension per step: visible features x channels (+ 3 pseudo rows)
+    nis_dof = visible.sum(axis=1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
+    nis_dof[0] = 0
     its = np.zeros((B, K + 1), int)
     conv = np.zeros((B, K + 1), bool)
     div_step = np.full(B, -1)
@@ -158,18 +168,25 @@ def run_filter(
             u, failed = _robust_update(xa, Pa, step, active, fs, setup)
             e = errors(u.x, truth.x[k])
             bad = _check(u.x, u.P, e, bounds)
-        for j in np.flatnonzero(failed):
-            bad[j] = failed[j]
+        bad = [f or b for f, b in zip(failed, bad)]
         x[active], P[active] = u.x, u.P
         err[active, k] = e
         its[active, k], conv[active, k] = u.iterations, u.converged
-        nis_dof[k] = u.nu.shape[-1]
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
                 nees[active, k] = _nees(u.x, u.P, truth.x[k])
             except np.linalg.LinAlgError:
                 pass
+        if truth.t[k] >= bounds.nis_start_s - 1e-9 and k >= bounds.nis_window_steps:
+            w0 = k - bounds.nis_window_steps + 1
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ratio = np.nanmean(nis[active, w0 : k + 1] / np.maximum(nis_dof[w0 : k + 1], 1), axis=1)
+            for j in np.flatnonzero(ratio > bounds.nis_ratio):
+                if not bad[j]:
+                    bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
+                              f"{ratio[j]:.3g} x its dimension > {bounds.nis_ratio:g}")  # fmt: skip
         keep = np.ones(active.size, bool)
         for j, i in enumerate(active):
             if bad[j]:

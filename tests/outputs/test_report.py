@@ -288,6 +288,7 @@ def test_compute_time_table():
 def test_divergence_reasons_grouped_without_numbers(run_dir, tmp_path):
     d = copy_run(run_dir, tmp_path / "d", drop=("timeseries.parquet",))
     t = pd.read_parquet(d / "trials.parquet")
+    t["diverged"], t["diverged_step"], t["diverged_reason"] = False, -1, ""  # only the two injected below
     sel = (t["filter"] == "ekf") & t["trial"].isin([1, 4])
     t.loc[sel, "diverged"] = True
     t.loc[sel, "diverged_step"] = [3, 5]
