@@ -81,7 +81,7 @@ MEANINGS = {
         "measured relative angular acceleration α (thesis: not stated; we use 1e-6). Must be > 0: the "
         "pseudo-measurement's R is built from it.",
     "measurements.inertia_pseudo_measurement.angular_acceleration": "How α is obtained: the true ω̇ plus noise (the "
-                                                                    "thesis's assumption; the only option so far).",
+                                                                    "thesis's assumption; the thesis's shortcut; see docs/angular-acceleration.md for the differentiated sources).",
     "initial_covariance.rho_m2": "P₀ variance of each component of ρ₀; the initial estimate is drawn from "
                                  "N(x_true(0), P₀).",
     "initial_covariance.rho_dot_m2ps2": "P₀ variance of each component of ρ̇₀.",

@@ -27,13 +27,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import load_scenario
+from .config import Scenario
 from .config.resolve import Setup, setup_of
 from .core import camera, jacobians
 from .core import observability as ob
@@ -75,12 +74,18 @@ def measurement_model(setup: Setup, truth: Truth) -> tuple[Array, Array]:
     Rows: ``N`` features x ``C`` channels (weight 0 when the feature is not visible), then
     3 pseudo-measurement rows if enabled. Every weight at ``t_0`` is 0 (no update there).
     """
+    sig = channel_sigmas(setup)
+    if np.any(sig <= 0):
+        raise ValueError(
+            "the Gramian needs nonzero truth noise: measurements.image_sigma / flow_sigma / disparity_sigma "
+            f"are {sig.tolist()} (a noise-free channel carries infinite information)"
+        )
     x = truth.x
     K1, n = x.shape
     Hf = jacobians.H_features(x, setup.baseline, setup.disparity, setup.focal)  # (K+1, N, C, n)
     N, C = Hf.shape[1], Hf.shape[2]
     vis = camera.visible(x)  # (K+1, N)
-    wf = vis[:, :, None] / channel_sigmas(setup)[None, None, :] ** 2
+    wf = vis[:, :, None] / sig[None, None, :] ** 2
     H = [Hf.reshape(K1, N * C, n)]
     w = [np.broadcast_to(wf, (K1, N, C)).reshape(K1, N * C)]
     if setup.pseudo:
@@ -127,35 +132,26 @@ def _block_summary(C: Array, x0: Array, n_points: int) -> dict[str, float]:
 def analyse(g: FilterGramian, weak: int = DEFAULT_WEAK, fix_gauge: bool = True) -> dict[str, Any]:
     """The scaled eigen-analysis and the CRLB of one Gramian, as a JSON-ready dict.
 
-    The quaternion-norm direction is always projected out (exactly unobservable by
-    construction); the three body-frame gauge directions too unless ``fix_gauge`` is
-    False. Their Rayleigh quotients are reported either way, with those of the three
-    centre-of-mass shifts, which are not projected out.
+    The quaternion-norm direction is always projected out (unobservable by construction);
+    the three body-frame gauge directions too unless ``fix_gauge`` is False. The Gramian
+    restricted to the gauge subspace and to the centre-of-mass shifts (not projected out)
+    is reported either way, as eigenvalues relative to the largest of ``W~``.
     """
     setup, x0 = g.setup, g.truth.x[0]
     n = x0.size
     N = st.n_points(n)
+    ks = st.k_slice(N)
     names = ob.filter_state_names(N)
     scale = np.sqrt(setup.P0_diag)
     u_q = ob.scaled_basis(ob.quaternion_norm_direction(x0), scale)
     B_g = ob.scaled_basis(ob.gauge_directions(x0), scale)
     B_c = ob.scaled_basis(ob.com_shift_directions(x0), scale)
-    fixed = np.linalg.qr(np.hstack([u_q, B_g]))[0] if fix_gauge else u_q
+    fixed = ob.scaled_basis(np.hstack([u_q, B_g]), np.ones(n)) if fix_gauge else u_q
     e = ob.gramian_eigen(g.W, scale, fixed)
     lam, V, lmax = e.eigenvalues, e.eigenvectors, e.lambda_max
-    Ws = e.scaled_gramian
 
-    def structural(dirs: Array, basis_label: str) -> list[dict[str, Any]]:
-        out = []
-        for j in range(dirs.shape[1]):
-            v = dirs[:, j] / np.linalg.norm(dirs[:, j])
-            rq = float(v @ Ws @ v)
-            out.append({"direction": f"{basis_label}_{'xyz'[j]}", "rayleigh": rq, "relative": rq / lmax})
-        return out
-
-    gauge_scaled = ob.gauge_directions(x0) / scale[:, None]
-    com_scaled = ob.com_shift_directions(x0) / scale[:, None]
-    B_gauge_restricted = np.linalg.eigvalsh(B_g.T @ Ws @ B_g)
+    def restricted(B: Array) -> list[float]:
+        return [float(v / lmax) for v in np.linalg.eigvalsh(B.T @ e.scaled_gramian @ B)]
 
     weak_dirs = []
     for i in range(min(weak, lam.size)):
@@ -164,24 +160,17 @@ def analyse(g: FilterGramian, weak: int = DEFAULT_WEAK, fix_gauge: bool = True) 
             {
                 "eigenvalue": float(lam[i]),
                 "relative": float(lam[i] / lmax),
-                "components": {k: float(c) for k, c in ob.describe_direction(v, names)},
-                "k_share": float(np.sum(v[st.k_slice(N)] ** 2)),
-                "gauge_share": ob.subspace_share(v, B_g),
+                "components": dict(ob.describe_direction(v, names)),
+                "k_share": float(np.sum(v[ks] ** 2)),
                 "com_shift_share": ob.subspace_share(v, B_c),
+                "gauge_share": ob.subspace_share(v, B_g),
             }
         )
 
-    ks = st.k_slice(N)
     C = ob.crlb_covariance(g.W, setup.P0_diag)
     no_k_prior = np.zeros(n, bool)
     no_k_prior[ks] = True
-    Ck = ob.crlb_covariance(g.W, setup.P0_diag, no_prior=no_k_prior)
-    sig = np.sqrt(np.diag(C))
-    k_scaled = np.zeros((n, 2))
-    k_scaled[ks, :] = np.eye(2)
-    # how weak the k axes are in the ranking: position of the eigenvector with the most k
-    k_rank = [int(np.argmax(V[ks.start + j, :] ** 2)) for j in range(2)]
-    lam_pos = np.maximum(lam, 0.0)
+    Ck = ob.crlb_covariance(g.W, setup.P0_diag, no_prior=no_k_prior)[ks, ks]
     return {
         "analysis": "filter_state_gramian",
         "duration_s": float(setup.steps * setup.dt),
@@ -190,50 +179,45 @@ def analyse(g: FilterGramian, weak: int = DEFAULT_WEAK, fix_gauge: bool = True) 
         "pseudo_measurement": bool(setup.pseudo),
         "omega0_degps": [float(v) for v in x0[st.OMEGA] / DEG],
         "measurement_rows": int(g.rows_per_step.sum()),
+        "noise": {
+            "image_sigma": float(setup.sigma_image),
+            "flow_sigma": float(setup.sigma_flow),
+            "disparity_sigma": float(setup.sigma_disparity) if setup.disparity else None,
+            "alpha_sigma_radps2": float(setup.sigma_alpha) if setup.pseudo else None,
+        },
         "state_names": list(names),
         "scaling": {k: float(v) for k, v in zip(names, scale)},
-        "scaling_rule": "sqrt(diag P0) (initial standard deviations; SI: m, m/s, rad/s, -, m, -)",
         "projected_out": ["q_norm"] + (["gauge_x", "gauge_y", "gauge_z"] if fix_gauge else []),
         "lambda_max": lmax,
         "roundoff_floor": e.floor,
         "eigenvalues": [float(v) for v in lam],
         "relative_eigenvalues": [float(v / lmax) for v in lam],
-        "relative_condition": float(lam_pos[0] / lmax),
-        "condition_number": (float(lmax / lam[0]) if lam[0] > e.floor else None),
+        "relative_condition": float(max(lam[0], 0.0) / lmax),
+        "condition_number": float(lmax / lam[0]) if lam[0] > e.floor else None,
         "weak_directions": weak_dirs,
-        "k_eigen_rank": k_rank,
         "q_norm": {
-            "rayleigh": float(e.fixed_rayleigh[0]),
-            "relative": float(e.fixed_rayleigh[0] / lmax),
-            "max_abs_H_eq": float(_max_abs_H_eq(g)),
+            "relative_rayleigh": float(e.fixed_rayleigh[0] / lmax),
+            "max_rel_H_eq": _max_rel_H_eq(g),
         },
-        "gauge": structural(gauge_scaled, "gauge")
-        + [{"direction": "gauge_subspace_eigenvalues", "relative": [float(v / lmax) for v in B_gauge_restricted]}],
-        "com_shift": structural(com_scaled, "com"),
-        "crlb_sigma": {k: float(v) for k, v in zip(names, sig)},
+        "gauge_relative_eigenvalues": restricted(B_g),
+        "com_shift_relative_eigenvalues": restricted(B_c),
+        "crlb_sigma": {k: float(v) for k, v in zip(names, np.sqrt(np.diag(C)))},
         "crlb_rms": _block_summary(C, x0, N),
-        "k_sigma_measurements_only": {"k1": float(np.sqrt(Ck[ks, ks][0, 0])), "k2": float(np.sqrt(Ck[ks, ks][1, 1]))},
-        "noise": {
-            "image_sigma": float(setup.sigma_image),
-            "flow_sigma": float(setup.sigma_flow),
-            "sigma_alpha_radps2": float(setup.sigma_alpha) if setup.pseudo else None,
-        },
+        "k_sigma_measurements_only": {"k1": float(np.sqrt(Ck[0, 0])), "k2": float(np.sqrt(Ck[1, 1]))},
     }
 
 
-def _max_abs_H_eq(g: FilterGramian) -> float:
-    """``max_k |H_k e_q(t_k)| / max|H_k|``: ``h`` is neutral to ``q``'s scale at every step."""
+def _max_rel_H_eq(g: FilterGramian) -> float:
+    """``max_k |H_k e_q(t_k)| / max |H_k|``: ``h`` is neutral to ``q``'s scale at every step."""
     H, w = measurement_model(g.setup, g.truth)
     e = ob.quaternion_norm_direction(g.truth.x)  # (K+1, n)
-    He = np.einsum("kmn,kn->km", H, e) * (w > 0)
+    He = np.einsum("kmn,kn->km", H, e)
     return float(np.max(np.abs(He)) / np.max(np.abs(H)))
 
 
 def filter_state_observability(
-    scenario: Path, duration_s: float | None = None, weak: int = DEFAULT_WEAK, fix_gauge: bool = True
+    s: Scenario, duration_s: float | None = None, weak: int = DEFAULT_WEAK, fix_gauge: bool = True
 ) -> dict[str, Any]:
-    """Load ``scenario`` (raises ``ScenarioError``), build the Gramian and analyse it."""
-    s = load_scenario(scenario)
-    setup = with_duration(setup_of(s), duration_s)
-    g = filter_gramian(setup)
-    return {"scenario": s.name, "scenario_file": str(scenario), **analyse(g, weak=weak, fix_gauge=fix_gauge)}
+    """Build the Gramian of scenario ``s`` (over ``duration_s`` if given) and analyse it."""
+    g = filter_gramian(with_duration(setup_of(s), duration_s))
+    return {"scenario": s.name, **analyse(g, weak=weak, fix_gauge=fix_gauge)}

@@ -10,6 +10,7 @@ CSV/JSON outputs hold the rows.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import sys
@@ -76,7 +77,10 @@ def test_campaign_rows(results, cfg):
     wall = {(r.filter, r.measure): r.value for r in rows["campaign"]}
     # throughput is trials / wall of the same run
     assert wall[("ekf", "throughput, --jobs 1")] == pytest.approx(2 / wall[("ekf", "wall, 2 trials, --jobs 1")])
-    assert ctx["campaign"][("ekf", 1)] == pytest.approx(wall[("ekf", "throughput, --jobs 1")])
+    c = ctx["campaign"][("ekf", 1)]
+    assert c["trials_per_s"] == pytest.approx(wall[("ekf", "throughput, --jobs 1")])
+    # 3 steps per trial; a diverged trial stops early, so at most 3 trial-steps per trial
+    assert 0 < c["trial_steps_per_s"] <= 3 * c["trials_per_s"] * (1 + 1e-12)
     (target,) = [r for r in rows["campaign"] if r.target]
     assert target.filter == "iekf" and target.measure.endswith("--jobs 2") and target.status.endswith("*")
 
@@ -108,18 +112,59 @@ def test_memory_rows(results):
     assert rs["largest single process RSS"].value > 50
 
 
-def test_filterpy_baseline_agrees_with_our_ekf(results):
+def test_baseline_rows(results):
     rows, _ = results
     rs = {r.measure: r for r in rows["baseline"]}
-    agree = rs["agreement: max |x_final(ours) - x_final(FilterPy)|"]
-    assert "over the 2 trials" in agree.note
-    # same EKF equations; only expm vs Taylor-4 for Phi and inv vs solve for the gain differ
-    assert agree.value < 1e-6
-    assert rs["throughput ratio ours / FilterPy"].target == ">= 10x"
+    agree = rs["agreement: max relative difference of the errors at the first update"]
+    # same EKF equations from identical inputs: only round-off differs at the first update
+    assert agree.value < 1e-4
+    ratio = rs["throughput ratio ours / FilterPy"]
+    assert ratio.target == ">= 10x" and ratio.note.startswith("campaign EKF --jobs 1")
 
 
-def test_filterpy_baseline_matches_our_ekf_step_by_step(cfg):
-    """Errors of the FilterPy EKF equal ours at every step (independent implementation)."""
+def test_filterpy_step_equals_ours_from_the_same_inputs(cfg):
+    """One FilterPy predict + update equals relnav.predict + relnav.update (independent code)."""
+    from scipy.linalg import expm
+
+    from stereopose_mc.core import jacobians
+    from stereopose_mc.core.orbit import leader_kinematics
+    from stereopose_mc.filters import relnav
+
+    from benchmarks import filterpy_baseline as fb
+
+    prep = common.prepare(common.scenario_dict(cfg))
+    # ours with the exact transition (the scenario's default is a Taylor series) to isolate the code
+    s, fs = prep.setup, dataclasses.replace(prep.filter("ekf"), transition="expm")
+    noisy, x0 = sections._draws(prep, np.arange(1))
+    P0 = np.diag(s.P0_diag)
+    vis = prep.exact.visible[1]
+    step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo), alpha=noisy.alpha[:, 1],
+                                  visible=vis, t=prep.truth.t[1])  # fmt: skip
+    xa, Pa = relnav.predict(x0, P0[None], 0.0, fs, s)
+    u = relnav.update(xa, Pa, step, np.arange(1), fs, s)
+
+    ekf = fb.RelNavEKF(x0.shape[1], 43, s.orbit, s.dt, fs.substeps)
+    ekf.x, ekf.P, ekf.Q = x0[0][:, None].copy(), P0.copy(), np.diag(fs.Q_diag)
+    lk0 = leader_kinematics(s.orbit, 0.0)
+    ekf.F = expm(jacobians.F(ekf.x[:, 0], lk0.r, lk0.nu_dot, lk0.nu_ddot, s.orbit.mu) * s.dt)
+    ekf.predict()
+    np.testing.assert_allclose(ekf.x[:, 0], xa[0], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(ekf.P, Pa[0], rtol=0, atol=1e-13 * np.abs(Pa).max())
+    lk = leader_kinematics(s.orbit, 1.0)
+    z = np.concatenate([noisy.y[0, 1][vis].ravel(), np.zeros(3)])
+    R = np.diag(relnav.measurement_noise(fs, s, int(vis.sum())))
+    args = (vis, noisy.alpha[0, 1], lk.nu_dot, lk.nu_ddot, s)
+    ekf.x, ekf.P = xa[0][:, None].copy(), Pa[0].copy()  # isolate the update
+    ekf.update(z[:, None], fb.h_jacobian, fb.hx, R=R, args=args, hx_args=args)
+    ekf.x[9:13] /= np.linalg.norm(ekf.x[9:13])
+    dx = np.abs(u.x[0] - xa[0]).max()
+    assert dx > 0.1  # a real correction
+    # S has condition number ~1e10 (R ~1e-10, H P H^T ~1): inv vs solve differ at ~1e-6 of the step
+    np.testing.assert_allclose(ekf.x[:, 0], u.x[0], rtol=0, atol=1e-5 * dx)
+    np.testing.assert_allclose(ekf.P, u.P[0], rtol=0, atol=1e-6 * np.abs(u.P[0]).max())
+
+
+def test_filterpy_run_tracks_ours(cfg):
     from stereopose_mc.mc.trial import run_filter
 
     from benchmarks.filterpy_baseline import run_trials
@@ -127,11 +172,11 @@ def test_filterpy_baseline_matches_our_ekf_step_by_step(cfg):
     prep = common.prepare(common.scenario_dict(cfg))
     fs = prep.filter("ekf")
     noisy, x0 = sections._draws(prep, np.arange(2))
-    b = run_trials(x0, noisy.y, noisy.alpha, prep.exact.visible, prep.truth, prep.setup, fs, prep.bounds)
+    b = run_trials(x0, noisy.y, noisy.alpha, prep.exact.visible, prep.truth, prep.setup, fs)
     o = run_filter(x0, prep.setup, prep.truth, noisy.y, noisy.alpha, prep.exact.visible, fs, prep.bounds)
-    assert b.steps_run == 2 * prep.setup.steps
-    np.testing.assert_array_equal(b.diverged_step, o.diverged_step)
-    np.testing.assert_allclose(b.errors, o.errors, rtol=1e-6, atol=1e-9)
+    assert b.steps_run == 2 * prep.setup.steps and (b.stopped_step < 0).all()
+    both = np.isfinite(o.errors).all(-1)
+    np.testing.assert_allclose(b.errors[both], o.errors[both], rtol=1e-3)
 
 
 def test_procmem_sees_a_known_allocation():

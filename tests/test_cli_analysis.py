@@ -63,6 +63,68 @@ def test_observability_bad_input_exit_2(args):
     assert r.exit_code == 2
 
 
+def test_observability_filter_state_case_e_json_names_k_among_the_weak_directions():
+    d = spmc_json("observability", "--filter-state", CONFIGS / "caseE.yaml", "--duration-s", "30")
+    assert d["scenario"] == "caseE" and d["duration_s"] == 30.0
+    names = d["state_names"]
+    assert len(names) == 30 and names[-2:] == ["k1", "k2"] and names[9:13] == ["q0", "q1", "q2", "q3"]
+    assert set(d["scaling"]) == set(names) == set(d["crlb_sigma"])
+    lam = d["eigenvalues"]
+    assert lam == sorted(lam) and len(lam) == 26  # q norm and 3 gauge directions projected out
+    assert len(d["weak_directions"]) == 5
+    assert [w["eigenvalue"] for w in d["weak_directions"]] == lam[:5]
+    weak_names = set().union(*(w["components"] for w in d["weak_directions"]))
+    assert {"k1", "k2"} <= weak_names
+    for w in d["weak_directions"]:
+        v = np.array(list(w["components"].values()))
+        assert np.all(np.abs(v) <= 1.0) and np.sum(v**2) <= 1.0 + 1e-12  # parts of a unit vector
+    # the CRLB never exceeds the prior sqrt(P0): q 1e-5, k 0.5 in case E
+    assert d["crlb_sigma"]["q0"] <= np.sqrt(1e-5) * (1 + 1e-9)
+    assert d["crlb_sigma"]["k1"] <= np.sqrt(0.5)
+
+
+def test_observability_filter_state_text_and_options():
+    r = spmc("observability", "--filter-state", CONFIGS / "caseB.yaml", "--duration-s", "10", "--weak", "3")
+    assert r.exit_code == 0, r.output
+    assert "weakest 3 directions" in r.stdout and "CRLB" in r.stdout and "quaternion norm direction" in r.stdout
+    d = spmc_json("observability", "--filter-state", CONFIGS / "caseB.yaml", "--duration-s", "10", "--keep-gauge")
+    assert d["projected_out"] == ["q_norm"] and len(d["eigenvalues"]) == 29
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--filter-state", "configs/caseE.yaml", "--order", "2"],
+        ["--filter-state", "configs/caseE.yaml", "--duration-s", "-1"],
+        ["--filter-state", "configs/caseE.yaml", "--duration-s", "0.2"],
+        ["--filter-state", "configs/caseE.yaml", "--weak", "0"],
+        ["--filter-state", "does/not/exist.yaml"],
+        ["--weak", "3"],
+        ["--keep-gauge"],
+    ],
+)
+def test_observability_filter_state_bad_input_exit_2(args):
+    args = [str(CONFIGS.parent / a) if a.startswith("configs/") else a for a in args]
+    r = spmc("observability", *args)
+    assert r.exit_code == 2, r.output
+    assert r.stdout == ""
+
+
+def test_observability_filter_state_noise_free_scenario_exit_2(tmp_path):
+    from scenarios import write_scenario
+
+    d = yaml.safe_load((CONFIGS / "caseE.yaml").read_text())
+    path = write_scenario(
+        tmp_path / "quiet.yaml",
+        "caseE",
+        measurements={**d["measurements"], "flow_sigma": 0.0},
+        filters=[{"type": "ekf", "measurement_noise": {"flow_sigma": 1e-5}}],
+    )
+    r = spmc("observability", "--filter-state", path, "--duration-s", "5")
+    assert r.exit_code == 2 and r.stdout == ""
+    assert "nonzero truth noise" in r.stderr
+
+
 # --------------------------------------------------------------------------- inertia
 
 

@@ -51,8 +51,8 @@ def line_of(text: str, needle: str) -> int:
 
 
 def test_validate_all_configs():
-    files = sorted(CONFIGS.glob("case*.yaml"))
-    assert [f.stem for f in files] == [f"case{c}" for c in "ABCDEF"]
+    files = sorted(CONFIGS.glob("*.yaml"))
+    assert {f"case{c}" for c in "ABCDEF"} <= {f.stem for f in files}
     r = spmc("validate", *files)
     assert r.exit_code == 0, r.output
     assert r.stdout.splitlines() == [f"ok: {f}" for f in files]

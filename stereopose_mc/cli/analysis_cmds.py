@@ -100,11 +100,21 @@ def _print_rank_report(r: dict[str, Any]) -> None:
         typer.echo("  " + _fmt_vec(v, "9.6f"))
 
 
+DEFAULT_WEAK_COUNT = 5
+"""How many of the weakest directions ``--filter-state`` describes by default."""
+
 OBSERVABILITY_HELP = (
     "Hermann-Krener rank test of thesis ch. 4: state x = (w, I_x, I_y, I_z), output y = w, torque-free.\n\n"
     "Prints the rank of O = (grad L0h; grad L1h) (5 for generic w and I), its null space (the unobservable "
     "direction, proportional to (0, 0, 0, I_x, I_y, I_z): only inertia ratios are observable) and its "
-    "singular values. Units: w in deg/s on input and rad/s in the output, I in kg m^2 (SI)."
+    "singular values. Units: w in deg/s on input and rad/s in the output, I in kg m^2 (SI).\n\n"
+    "With --filter-state SCENARIO: a numerical local observability analysis of the whole filter state "
+    "along the scenario's true trajectory instead: the observability Gramian "
+    "W = sum_k Phi(t_k,t_0)^T H_k^T R^-1 H_k Phi(t_k,t_0) of the filter's Jacobians (R: the truth's noise), "
+    "scaled by sqrt(diag P0) and eigen-decomposed (quaternion-norm direction projected out, and the "
+    "body-frame gauge unless --keep-gauge), its weakest directions by state element, and the CRLB "
+    "sqrt(diag((W + P0^-1)^-1)) in SI units (rho m, rho_dot m/s, omega rad/s; summaries in deg/s and deg). "
+    "See docs/observability.md."
 )
 
 
@@ -123,9 +133,44 @@ def observability(
     as_json: bool = typer.Option(
         False, "--json", help="print one JSON object (rank, null_space, singular_values, ...)"
     ),
+    filter_state: Optional[Path] = typer.Option(
+        None,
+        "--filter-state",
+        help="scenario file: analyse the observability Gramian of the full filter state along its true "
+        "trajectory (instead of the Hermann-Krener test)",
+    ),
+    duration_s: Optional[float] = typer.Option(
+        None, "--duration-s", help="with --filter-state: horizon in s (default: the scenario's time.duration_s)"
+    ),
+    weak: int = typer.Option(
+        DEFAULT_WEAK_COUNT, "--weak", help="with --filter-state: how many of the weakest directions to describe"
+    ),
+    keep_gauge: bool = typer.Option(
+        False,
+        "--keep-gauge",
+        help="with --filter-state: do not project the body-frame gauge (rotating q and all P_i together) out "
+        "of the eigen-analysis",
+    ),
 ) -> None:
     """Hermann-Krener rank test of thesis ch. 4 (see OBSERVABILITY_HELP)."""
+    if filter_state is not None:
+        problems = []
+        euler_defaults = ((-0.1, -0.1, 0.034), (0.83, 1.0, 1.083), 1, 1e-9)
+        if (tuple(omega_degps), tuple(inertia), order, rtol) != euler_defaults:
+            problems.append(
+                "--omega-degps, --inertia, --order and --rtol belong to the Hermann-Krener test, not to --filter-state"
+            )
+        if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+            problems.append(f"--duration-s must be a positive number of seconds (got {duration_s})")
+        if weak < 1:
+            problems.append(f"--weak must be at least 1 (got {weak})")
+        if problems:
+            fail(problems)
+        _filter_state_command(filter_state, duration_s, weak, keep_gauge, as_json)
+        return
     problems = []
+    if duration_s is not None or weak != DEFAULT_WEAK_COUNT or keep_gauge:
+        problems.append("--duration-s, --weak and --keep-gauge need --filter-state SCENARIO")
     if order not in (1, 2):
         problems.append(f"--order must be 1 or 2 (got {order})")
     if not all(math.isfinite(w) for w in omega_degps):
@@ -136,9 +181,6 @@ def observability(
         problems.append(f"--rtol must be in (0, 1) (got {rtol})")
     if problems:
         fail(problems)
-    # (a --filter-state SCENARIO analysis of the full filter state, from an observability
-    # Gramian of the filter's F and H, plugs in here: build its dict with the same keys via
-    # core.observability.rank_analysis and print it with _print_rank_report.)
     r = euler_observability(omega_degps, inertia, order, rtol)
     if as_json:
         _echo_json(r)
@@ -151,6 +193,81 @@ def observability(
     _print_rank_report(r)
     if r["null_space_is_inertia_scale"]:
         typer.echo("the null space is [0, 0, 0, I_x, I_y, I_z]/|I|: only the inertia ratios are observable")
+
+
+def _filter_state_command(path: Path, duration_s: float | None, weak: int, keep_gauge: bool, as_json: bool) -> None:
+    """``--filter-state``: load the scenario (exit 2 if invalid), analyse, print."""
+    from ..observability_study import filter_state_observability
+
+    s = load_or_exit(path)
+    steps = None if duration_s is None else round(duration_s / s.time.dt_s)
+    if steps is not None and steps < 1:
+        fail([f"--duration-s {duration_s:g} is shorter than one step (time.dt_s = {s.time.dt_s:g} s)"])
+    try:
+        r = filter_state_observability(s, duration_s, weak=weak, fix_gauge=not keep_gauge)
+    except ValueError as exc:
+        fail([f"{path}: {exc}"])
+    r["scenario_file"] = str(path)
+    if as_json:
+        _echo_json(r)
+    else:
+        _print_filter_state(r)
+
+
+def _e(x: float) -> str:
+    return f"{x:.3e}"
+
+
+def _print_filter_state(r: dict[str, Any]) -> None:
+    """Text form of the ``--filter-state`` dict."""
+    names = r["state_names"]
+    typer.echo(
+        f"Observability Gramian of the filter state along the true trajectory of {r['scenario']} "
+        f"({r['scenario_file']}): {r['duration_s']:g} s, dt {r['dt_s']:g} s, {r['measurement_rows']} measurement rows, "
+        f"pseudo-measurement {'on' if r['pseudo_measurement'] else 'off'}, "
+        f"omega0 = {_fmt_vec(r['omega0_degps'], '.4g')} deg/s"
+    )
+    typer.echo("W = sum_k Phi(t_k,t_0)^T H_k^T R^-1 H_k Phi(t_k,t_0), R = the truth's noise; "
+               "scaled W~ = S W S with S = sqrt(diag P0) (unit-free)")  # fmt: skip
+    typer.echo(f"largest eigenvalue of W~: {_e(r['lambda_max'])}; values below are relative to it "
+               f"(round-off floor n eps = {r['roundoff_floor'] / r['lambda_max']:.1e})")  # fmt: skip
+    qn = r["q_norm"]
+    typer.echo(
+        f"quaternion norm direction: unobservable by construction (|H_k e_q| / |H_k| <= {qn['max_rel_H_eq']:.1e}); "
+        f"Rayleigh quotient {qn['relative_rayleigh']:.1e} (discretization of Phi); projected out"
+    )
+    gauge = " ".join(f"{v:.1e}" for v in r["gauge_relative_eigenvalues"])
+    fixed = "projected out" if "gauge_x" in r["projected_out"] else "kept (--keep-gauge)"
+    typer.echo(f"body-frame gauge (rotate q and all P_i together; images unchanged): W~ on it {gauge}; {fixed}")
+    com = " ".join(f"{v:.1e}" for v in r["com_shift_relative_eigenvalues"])
+    typer.echo(f"centre-of-mass shift (all P_i by c, rho by -D c; images unchanged at t_0): W~ on it {com}")
+    rel = r["relative_eigenvalues"]
+    typer.echo(f"eigenvalues of W~ ({len(rel)}, ascending, relative): " + " ".join(f"{v:.2e}" for v in rel))
+    cond = r["condition_number"]
+    typer.echo(
+        f"relative condition lambda_min/lambda_max = {r['relative_condition']:.2e}"
+        + ("" if cond is not None else " (smallest eigenvalue at round-off)")
+    )
+    typer.echo(f"weakest {len(r['weak_directions'])} directions (unit vectors in scaled coordinates):")
+    for d in r["weak_directions"]:
+        comps = ", ".join(f"{k} {v:+.2f}" for k, v in d["components"].items())
+        typer.echo(
+            f"  {d['relative']:.2e}  {comps}   [k {d['k_share']:.2f}, com shift {d['com_shift_share']:.2f}, "
+            f"gauge {d['gauge_share']:.2f}]"
+        )
+    typer.echo("CRLB sqrt(diag((W + P0^-1)^-1)) (SI: m, m/s, rad/s, -, m, -):")
+    sig = r["crlb_sigma"]
+    blocks = [names[0:3], names[3:6], names[6:9], names[9:13]]
+    blocks += [names[13 + 3 * i : 16 + 3 * i] for i in range((len(names) - 15) // 3)] + [names[-2:]]
+    for b in blocks:
+        typer.echo("  " + "  ".join(f"{k} {sig[k]:.3e}" for k in b))
+    rms = r["crlb_rms"]
+    typer.echo(
+        f"  RMS error bounds: rho {rms['rho_m']:.3g} m, rho_dot {rms['rho_dot_mps']:.3g} m/s, "
+        f"omega {rms['omega_degps']:.3g} deg/s, theta {rms['theta_deg']:.3g} deg, k1 {rms['k1']:.3g}, k2 {rms['k2']:.3g}"
+    )
+    km = r["k_sigma_measurements_only"]
+    typer.echo(f"  k from the measurements alone (no prior on k): k1 {km['k1']:.3g}, k2 {km['k2']:.3g}")
 
 
 # --------------------------------------------------------------------------- inertia

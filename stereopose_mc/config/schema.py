@@ -114,7 +114,7 @@ class PseudoMeasurementConfig(_Model):
     )
     tikhonov_lambda: Pos = Field(
         default=100.0,
-        description="tikhonov: dimensionless regularization weight lam in ||A s - (w - w_0)||^2 + lam ||D s||^2 "
+        description="tikhonov: dimensionless regularization weight lam in ‖A s − (w − w_0)‖² + lam ‖D s‖² "
         "(s = alpha dt).",
     )
     tikhonov_order: Literal[1, 2] = Field(
@@ -122,8 +122,8 @@ class PseudoMeasurementConfig(_Model):
     )
     td_r_radps3: Pos = Field(
         default=0.05,
-        description="tracking_differentiator: Han's speed factor r, the bound on |d alpha/dt| of the differentiator's "
-        "state; keep r h0^2 above the largest expected jump of the omega estimate (linear zone).",
+        description="tracking_differentiator: Han's speed factor r, the bound on the rate of change of the "
+        "differentiator's alpha; keep r h0² above the largest expected jump of the omega estimate (linear zone).",
     )
     td_h0_steps: Annotated[float, Field(ge=1.0, le=1000.0)] = Field(
         default=1.5,

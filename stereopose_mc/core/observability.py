@@ -9,8 +9,7 @@ Two layers:
    each state component and rows are equilibrated before the SVD, so the rank decision
    does not depend on the units the state happens to be written in. The same function
    serves any other observability matrix, e.g. an observability Gramian built from a
-   filter's ``F`` and ``H`` along a trajectory (to be added beside the Euler functions
-   below, reusing :func:`rank_analysis` unchanged).
+   filter's ``F`` and ``H`` along a trajectory.
 
 2. **The torque-free rigid body of thesis ch. 4** (state ``x = [w_x, w_y, w_z, I_x, I_y,
    I_z]`` in principal axes, output ``y = h(x) = w``):
@@ -29,8 +28,16 @@ Two layers:
    ``dc_i/dI_k = -1/I_i``). For generic ``w`` and ``I`` its rank is 5 and its null space
    is spanned by ``[0, 0, 0, I_x, I_y, I_z]``: only the inertia ratios are observable.
 
-All kernels take any leading batch axes ``(...)``; :func:`rank_analysis` works on one
-matrix (its null space has a data-dependent number of columns).
+3. **The full filter state** (last section): the discrete observability Gramian
+   ``W = sum_k Phi(t_k,t_0)^T H_k^T R_k^-1 H_k Phi(t_k,t_0)`` from given one-step
+   transitions and measurement Jacobians (:func:`observability_gramian`), its eigen-analysis
+   in scaled coordinates with chosen directions projected out (:func:`gramian_eigen`), the
+   directions that are invisible to ``h`` by construction (the quaternion norm, the
+   body-frame gauge, the centre-of-mass shift), and the CRLB ``(W + P0^-1)^-1``. The
+   scenario plumbing is in ``stereopose_mc/observability_study.py``.
+
+All kernels take any leading batch axes ``(...)``; :func:`rank_analysis`,
+:func:`gramian_eigen` and :func:`crlb_covariance` work on one matrix.
 """
 
 from __future__ import annotations

@@ -62,6 +62,7 @@ class StepMeasurement:
     alpha: Array  # (B, 3) measured angular acceleration (used only with the pseudo rows)
     visible: Array  # (N,) bool: features in view at this step
     t: float
+    alpha_var: Array | None = None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):
@@ -88,12 +89,14 @@ def measurement_model(setup: Setup, step: StepMeasurement):
     return measure
 
 
-def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int) -> Array:
-    """The filter's R diagonal ``(m,)`` for ``n_visible`` features (+ pseudo rows)."""
+def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int, alpha_var: Array | None = None) -> Array:
+    """The filter's R diagonal, ``(m,)``, or ``(b, m)`` with per-trial pseudo rows ``alpha_var (b, 3)``."""
     r = np.tile(channel_variances(fs, setup.disparity), n_visible)
-    if setup.pseudo:
-        r = np.concatenate([r, np.full(3, fs.sigma_alpha**2)])
-    return r
+    if not setup.pseudo:
+        return r
+    if alpha_var is None:
+        return np.concatenate([r, np.full(3, fs.sigma_alpha**2)])
+    return np.concatenate([np.broadcast_to(r, alpha_var.shape[:-1] + r.shape), alpha_var], axis=-1)
 
 
 def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
@@ -108,7 +111,7 @@ def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
 def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup) -> kf.Update:
     """The filter's measurement update (EKF or IEKF) at one step."""
     measure = measurement_model(setup, step)
-    R = measurement_noise(fs, setup, int(step.visible.sum()))
+    R = measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
     y = step.y[rows]
     if fs.kind == "ekf":
         u = kf.ekf_update(x, P, y, measure, R, rows)

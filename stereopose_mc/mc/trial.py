@@ -15,6 +15,7 @@ a lost filter: from ``nis_start_s`` on, its NIS averaged over the last
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from ..core import quaternion as qt
 from ..core import state as st
 from ..core import filters as kf
 from ..filters import relnav
+from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
 from ..sim.truth import Truth
 
@@ -154,6 +156,13 @@ def run_filter(
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
     err[:, 0] = errors(x, truth.x[0])
     nees[:, 0] = _nees(x, P, truth.x[0])
+    # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
+    # posterior omega and its variance, newest last; sample 0 is the initial estimate
+    src = alpha_source_of(setup, fs)
+    w_hist = np.full((B, src.window, 3), np.nan)
+    v_hist = np.full((B, src.window, 3), np.nan)
+    w_hist[:, -1], v_hist[:, -1] = x[:, st.OMEGA], _omega_var(P)
+    td_state = None
     active = np.arange(B)
     for k in range(1, K + 1):
         if active.size == 0:
@@ -161,15 +170,25 @@ def run_filter(
         with np.errstate(all="ignore"):
             xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
+        # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
+        a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
+        pseudo_k = setup.pseudo and bool(np.isfinite(a_k[active]).all())  # False during the warm-up
+        setup_k = setup if pseudo_k == setup.pseudo else dataclasses.replace(setup, pseudo=False)
+        if not pseudo_k and setup.pseudo:
+            nis_dof[k] -= 3
         step = relnav.StepMeasurement(
-            y=relnav.stack_measurement(y_feat[:, k], vis, setup.pseudo), alpha=alpha[:, k], visible=vis, t=truth.t[k]
+            y=relnav.stack_measurement(y_feat[:, k], vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
+            t=truth.t[k], alpha_var=pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor)
+            if src.differentiated else None,  # None: the filter's sigma_alpha^2, as before
         )
         with np.errstate(all="ignore"):
-            u, failed = _robust_update(xa, Pa, step, active, fs, setup)
+            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
             e = errors(u.x, truth.x[k])
             bad = _check(u.x, u.P, e, bounds)
         bad = [f or b for f, b in zip(failed, bad)]
         x[active], P[active] = u.x, u.P
+        w_hist = np.concatenate([w_hist[:, 1:], x[:, None, st.OMEGA]], axis=1)  # push the posterior at t_k
+        v_hist = np.concatenate([v_hist[:, 1:], _omega_var(P)[:, None]], axis=1)
         err[active, k] = e
         its[active, k], conv[active, k] = u.iterations, u.converged
         with np.errstate(all="ignore"):
@@ -178,7 +197,7 @@ def run_filter(
                 nees[active, k] = _nees(u.x, u.P, truth.x[k])
             except np.linalg.LinAlgError:
                 pass
-        if truth.t[k] >= bounds.nis_start_s - 1e-9 and k >= bounds.nis_window_steps:
+        if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
             w0 = k - bounds.nis_window_steps + 1
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -194,6 +213,11 @@ def run_filter(
                 err[i, k:] = np.nan
         active = active[keep]
     return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P)
+
+
+def _omega_var(P: Array) -> Array:
+    """Diagonal ``(B, 3)`` of the ``omega`` block of ``P (B, n, n)``."""
+    return np.diagonal(P[:, st.OMEGA, st.OMEGA], axis1=-2, axis2=-1).copy()
 
 
 def _robust_update(xa, Pa, step, rows, fs, setup):

@@ -224,3 +224,173 @@ def test_invalid_inputs():
         ob.rank_analysis(np.ones((2, 3, 3)))
     with pytest.raises(ValueError):
         ob.rank_analysis(np.ones((2, 3)), column_scale=np.array([1.0, -1.0, 1.0]))
+
+
+# --------------------------------------------------------------------------- filter-state Gramian
+#
+# References: the observability matrix of a constant linear system stacked by matrix powers;
+# eigen-pairs constructed by hand; the CRLB by a plain linear solve of the information
+# matrix; the invariances of the nonlinear camera model h_features under finite steps.
+
+from scipy.linalg import expm  # noqa: E402
+
+from stereopose_mc.core import camera, jacobians  # noqa: E402
+from stereopose_mc.core import quaternion as qt  # noqa: E402
+from stereopose_mc.core import state as stt  # noqa: E402
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gramian_of_a_linear_toy_equals_the_stacked_observability_matrix(seed):
+    rng = np.random.default_rng(seed)
+    n, m, K, dt = 5, 2, 7, 0.3
+    F = rng.normal(size=(n, n))
+    H = rng.normal(size=(m, n))
+    Phi = expm(F * dt)
+    sig = rng.uniform(0.5, 2.0, size=(K + 1, m))
+    w = 1.0 / sig**2
+    w[0] = 0.0  # no measurement at t_0
+    w[3, 1] = 0.0  # one row missing at t_3
+    # reference: O = [H; H Phi; H Phi^2; ...], W = O^T R^-1 O
+    O = np.vstack([H @ np.linalg.matrix_power(Phi, k) for k in range(K + 1)])
+    W_ref = O.T @ np.diag(w.reshape(-1)) @ O
+    W = ob.observability_gramian(np.broadcast_to(Phi, (K, n, n)), np.broadcast_to(H, (K + 1, m, n)), w)
+    np.testing.assert_allclose(W, W_ref, rtol=1e-10, atol=1e-10 * np.abs(W_ref).max())
+    # the square root: W = O_w^T O_w
+    Ow = ob.whitened_observability_matrix(np.broadcast_to(Phi, (K, n, n)), np.broadcast_to(H, (K + 1, m, n)), w)
+    np.testing.assert_allclose(Ow.T @ Ow, W_ref, rtol=1e-10, atol=1e-10 * np.abs(W_ref).max())
+    # leading batch axes: two systems at once equal each alone
+    F2 = rng.normal(size=(n, n))
+    Phis = np.stack([np.broadcast_to(Phi, (K, n, n)), np.broadcast_to(expm(F2 * dt), (K, n, n))])
+    Wb = ob.observability_gramian(Phis, np.broadcast_to(H, (2, K + 1, m, n)), np.broadcast_to(w, (2, K + 1, m)))
+    assert Wb.shape == (2, n, n)
+    np.testing.assert_allclose(Wb[0], W, rtol=1e-12, atol=1e-12 * np.abs(W).max())
+    O2 = np.vstack([H @ np.linalg.matrix_power(expm(F2 * dt), k) for k in range(K + 1)])
+    W2 = O2.T @ np.diag(w.reshape(-1)) @ O2
+    np.testing.assert_allclose(Wb[1], W2, rtol=1e-10, atol=1e-10 * np.abs(W2).max())
+
+
+def test_gramian_of_a_double_integrator_sees_no_position_from_velocity():
+    # x = [p, v], p' = v, y = v: the position is unobservable, W e_p = 0 exactly
+    F = np.array([[0.0, 1.0], [0.0, 0.0]])
+    Phi = expm(F * 0.5)
+    W = ob.observability_gramian(np.broadcast_to(Phi, (4, 2, 2)), np.broadcast_to([[0.0, 1.0]], (5, 1, 2)), np.ones((5, 1)))
+    assert W[0, 0] == 0.0 and W[0, 1] == 0.0
+    assert W[1, 1] == pytest.approx(5.0)
+
+
+def test_cumulative_transitions_chain_in_order():
+    rng = np.random.default_rng(3)
+    A, B = rng.normal(size=(2, 3, 3))
+    Phi = ob.cumulative_transitions(np.stack([A, B]))
+    np.testing.assert_allclose(Phi[0], np.eye(3))
+    np.testing.assert_allclose(Phi[1], A)
+    np.testing.assert_allclose(Phi[2], B @ A)  # Phi(t2,t0) = Phi(t2,t1) Phi(t1,t0), not A B
+
+
+def test_gramian_eigen_projects_out_fixed_directions_in_scaled_coordinates():
+    rng = np.random.default_rng(4)
+    n = 6
+    V, _ = np.linalg.qr(rng.normal(size=(n, n)))  # orthonormal eigenvectors in scaled coordinates
+    lam = np.array([0.0, 1e-6, 3e-3, 0.2, 1.0, 5.0])
+    s = np.array([1e-3, 2.0, 0.5, 10.0, 1.0, 3e2])  # characteristic sizes
+    Ws = V @ np.diag(lam) @ V.T
+    W = Ws / s[:, None] / s[None, :]  # physical Gramian: W~ = S W S
+    e = ob.gramian_eigen(W, s, fixed=V[:, [0]])
+    np.testing.assert_allclose(e.eigenvalues, lam[1:], atol=1e-12 * 5.0)
+    for i in range(n - 1):  # eigenvectors: +-V[:, i+1]
+        assert abs(abs(e.eigenvectors[:, i] @ V[:, i + 1]) - 1.0) < 1e-9
+    assert e.lambda_max == pytest.approx(5.0)
+    assert e.fixed_rayleigh[0] == pytest.approx(0.0, abs=1e-12)
+    # projecting out an eigenvector with a large eigenvalue removes it from the spectrum
+    e2 = ob.gramian_eigen(W, s, fixed=V[:, [5]])
+    np.testing.assert_allclose(e2.eigenvalues, lam[:5], atol=1e-12 * 5.0)
+    assert e2.fixed_rayleigh[0] == pytest.approx(5.0)
+    with pytest.raises(ValueError):
+        ob.gramian_eigen(W, s, fixed=2.0 * V[:, [0]])  # not orthonormal
+
+
+def test_crlb_covariance_is_the_inverse_information():
+    rng = np.random.default_rng(5)
+    n = 5
+    A = rng.normal(size=(8, n)) * np.array([1e3, 1.0, 1e-2, 10.0, 1.0])
+    W = A.T @ A
+    p = np.array([1.0, 1e-4, 4.0, 1e-2, 0.5])
+    J = W + np.diag(1.0 / p)
+    C_ref = np.linalg.solve(J, np.eye(n))
+    np.testing.assert_allclose(ob.crlb_covariance(W, p), C_ref, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(ob.crlb_sigma(W, p), np.sqrt(np.diag(C_ref)), rtol=1e-8)
+    mask = np.array([False, False, False, True, True])
+    J2 = W + np.diag(np.where(mask, 0.0, 1.0 / p))
+    np.testing.assert_allclose(ob.crlb_covariance(W, p, mask), np.linalg.solve(J2, np.eye(n)), rtol=1e-7, atol=1e-14)
+    # no measurements: the prior
+    np.testing.assert_allclose(ob.crlb_sigma(np.zeros((n, n)), p), np.sqrt(p), rtol=1e-14)
+
+
+def _random_filter_state(rng, n_points=4):
+    q = qt.normalize(rng.normal(size=4))
+    P = rng.normal(size=(n_points, 3))
+    return stt.assemble(
+        [rng.uniform(-5, 5), rng.uniform(40, 80), rng.uniform(-5, 5)],
+        rng.normal(scale=0.05, size=3),
+        rng.normal(scale=0.02, size=3),
+        q,
+        P,
+        rng.normal(scale=0.2, size=2),
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_structural_directions_leave_the_images_unchanged(seed):
+    rng = np.random.default_rng(seed)
+    x = _random_filter_state(rng)
+    b = 1.0
+
+    def h(xx):
+        return camera.h_features(xx, b).reshape(-1)
+
+    Hx = jacobians.H_features(x, b).reshape(-1, x.size)
+    # quaternion norm: exactly invariant (D(q) is normalized), also for a finite step
+    for eps in (1e-3, 0.5):
+        np.testing.assert_allclose(h(x + eps * ob.quaternion_norm_direction(x)), h(x), rtol=1e-13, atol=1e-15)
+    assert np.abs(Hx @ ob.quaternion_norm_direction(x)).max() < 1e-14 * np.abs(Hx).max()
+    # gauge and centre-of-mass shift: first-order invariant, the change of h is O(eps^2)
+    for dirs in (ob.gauge_directions(x), ob.com_shift_directions(x)):
+        assert dirs.shape == (x.size, 3)
+        assert np.abs(Hx @ dirs).max() < 1e-12 * np.abs(Hx).max()
+        for j in range(3):
+            d = dirs[:, j] / np.linalg.norm(dirs[:, j])
+            d1 = np.abs(h(x + 1e-3 * d) - h(x)).max()
+            d2 = np.abs(h(x + 0.5e-3 * d) - h(x)).max()
+            assert d1 < 1e-3 * 1e-3 * np.abs(Hx).max() * 10  # far below a first-order change
+            assert d2 == pytest.approx(d1 / 4.0, rel=0.05)  # quadratic
+    # a generic direction changes h at first order
+    d = rng.normal(size=x.size)
+    d /= np.linalg.norm(d)
+    assert np.abs(h(x + 1e-3 * d) - h(x)).max() > 1e-3 * 1e-3
+
+
+def test_structural_directions_are_batched():
+    rng = np.random.default_rng(9)
+    xs = np.stack([_random_filter_state(rng) for _ in range(3)])
+    for fn in (ob.gauge_directions, ob.com_shift_directions):
+        out = fn(xs)
+        assert out.shape == xs.shape + (3,)
+        np.testing.assert_allclose(out[1], fn(xs[1]), rtol=1e-15, atol=1e-15)
+    assert ob.quaternion_norm_direction(xs).shape == xs.shape
+
+
+def test_filter_state_names_and_description():
+    names = ob.filter_state_names(2)
+    assert len(names) == stt.size(2) == 21
+    assert names[:3] == ("rho_x", "rho_y", "rho_z") and names[9:13] == ("q0", "q1", "q2", "q3")
+    assert names[13:19] == ("P1_x", "P1_y", "P1_z", "P2_x", "P2_y", "P2_z") and names[-2:] == ("k1", "k2")
+    v = np.zeros(21)
+    v[-2:] = [0.98, 0.17]
+    v[0] = 0.05
+    v /= np.linalg.norm(v)
+    desc = ob.describe_direction(v, names)
+    assert [k for k, _ in desc] == ["k1", "k2"]
+    assert desc[0][1] == pytest.approx(0.98 / np.sqrt(0.98**2 + 0.17**2 + 0.05**2))
+    basis = np.zeros((21, 2))
+    basis[-2:, :] = np.eye(2)
+    assert ob.subspace_share(v, basis) == pytest.approx((0.98**2 + 0.17**2) / (0.98**2 + 0.17**2 + 0.05**2))

@@ -1,0 +1,291 @@
+"""Shared pieces of the benchmark suite: table rows, sizes, timing, scenario copies, output."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+CASE_B = ROOT / "configs" / "caseB.yaml"
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline")
+COLUMNS = ("section", "filter", "measure", "value", "unit", "target", "status", "note")
+
+
+# ----------------------------------------------------------------------------- rows
+
+
+@dataclass
+class Row:
+    """One line of the benchmark table.
+
+    ``status`` is ``met`` / ``not met`` for a row with a target (suffix ``*`` when the
+    number was measured at reduced size or projected from it; see ``note``), else ``""``.
+    """
+
+    section: str
+    filter: str
+    measure: str
+    value: float
+    unit: str
+    target: str = ""
+    status: str = ""
+    note: str = ""
+
+
+def judge(value: float, limit: float, kind: str, reduced: bool = False) -> str:
+    """``met`` when ``value <= limit`` (``kind="max"``) or ``value >= limit`` (``"min"``)."""
+    if not math.isfinite(value):
+        ok = False
+    elif kind == "max":
+        ok = value <= limit
+    elif kind == "min":
+        ok = value >= limit
+    else:
+        raise ValueError(f"kind must be 'max' or 'min', not {kind!r}")
+    return ("met" if ok else "not met") + ("*" if reduced else "")
+
+
+# ----------------------------------------------------------------------------- sizes
+
+
+@dataclass
+class BenchConfig:
+    """Sizes of every section. ``full()`` is what ``make bench`` runs; ``quick()`` the reduced one."""
+
+    mode: str = "full"
+    scenario: Path = CASE_B
+    out: Path = ROOT / "runs" / "bench"
+    filters: tuple[str, ...] = ("iekf", "ekf")  # filter types of the scenario to benchmark
+    time_override: dict[str, float] | None = None  # replaces the scenario's `time` (tests)
+    repeats: int = 3  # medians over this many repeats for measurements under `cheap_s`
+    cheap_s: float = 2.0
+    # campaign (spmc run in a subprocess)
+    campaign_trials: int = 1000
+    campaign_jobs: tuple[int, ...] = (1, 2)
+    target_trials: int = 1000  # the size the campaign target is stated for
+    # amortized cost per trial vs chunk size: {B: total trials}
+    chunk_trials: dict[int, int] = field(default_factory=lambda: {1: 20, 10: 100, 100: 200, 1000: 1000})
+    # single-trial step latency
+    latency_steps: tuple[int, int] = (20, 100)
+    latency_reps: int = 10
+    latency_candidates: int = 10  # trials tried until one does not diverge
+    # scaling with the number of feature points
+    scaling_points: tuple[int, ...] = (5, 10, 20, 50)
+    scaling_batch: int = 100
+    scaling_steps: int = 5
+    sphere_radius_m: float = 1.5
+    # peak memory (spmc run in a subprocess)
+    memory_trials: int = 10000
+    memory_jobs: int = 2
+    memory_target_trials: int = 10000
+    memory_interval_s: float = 0.1
+    # FilterPy baseline
+    baseline_trials: int = 20
+    keep_runs: bool = False
+    blas_threads: int | None = None  # OPENBLAS/OMP/MKL_NUM_THREADS for the spmc subprocesses (None: as is)
+    inproc_threads: int | None = 1  # BLAS threads of the in-process sections (the engine's chunks use 1)
+
+    @classmethod
+    def full(cls, **kw: Any) -> "BenchConfig":
+        return cls(**kw)
+
+    @classmethod
+    def quick(cls, **kw: Any) -> "BenchConfig":
+        base = dict(
+            mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
+            scaling_batch=20, scaling_steps=2, memory_trials=1000, baseline_trials=20,
+        )  # fmt: skip
+        base.update(kw)
+        return cls(**base)
+
+    def with_(self, **kw: Any) -> "BenchConfig":
+        return replace(self, **kw)
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def log(msg: str) -> None:
+    """Progress on stderr (stdout holds only the machine header and the table)."""
+    print(f"[bench {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+@dataclass(frozen=True)
+class Timing:
+    median_s: float
+    samples_s: tuple[float, ...]
+    result: Any = None
+
+    @property
+    def n(self) -> int:
+        return len(self.samples_s)
+
+
+def timed(fn: Callable[[], Any], repeats: int = 3, cheap_s: float = 2.0) -> Timing:
+    """Wall time of ``fn()``; repeated ``repeats`` times (median) when one call is under ``cheap_s``.
+
+    Returns the result of the last call.
+    """
+    samples = []
+    t0 = time.perf_counter()
+    result = fn()
+    samples.append(time.perf_counter() - t0)
+    if samples[0] < cheap_s:
+        for _ in range(repeats - 1):
+            t0 = time.perf_counter()
+            result = fn()
+            samples.append(time.perf_counter() - t0)
+    return Timing(statistics.median(samples), tuple(samples), result)
+
+
+def fit_exponent(x: Iterable[float], y: Iterable[float]) -> float:
+    """Slope ``p`` of the least-squares line ``log y = p log x + c`` (``y ~ x^p``)."""
+    lx, ly = np.log(np.asarray(list(x), float)), np.log(np.asarray(list(y), float))
+    A = np.stack([lx, np.ones_like(lx)], axis=1)
+    coef, *_ = np.linalg.lstsq(A, ly, rcond=None)
+    return float(coef[0])
+
+
+def percentile(samples: Iterable[float], q: float) -> float:
+    """The ``q``-th percentile that is an actual sample (numpy ``inverted_cdf``)."""
+    return float(np.percentile(np.asarray(list(samples), float), q, method="inverted_cdf"))
+
+
+# ----------------------------------------------------------------------------- scenarios
+
+
+def scenario_dict(cfg: BenchConfig) -> dict:
+    """The benchmark scenario as a YAML dict (with the configured ``time`` override)."""
+    d = yaml.safe_load(Path(cfg.scenario).read_text())
+    if cfg.time_override is not None:
+        d["time"] = dict(cfg.time_override)
+    return d
+
+
+def single_filter(d: dict, kind: str) -> dict:
+    """Copy of scenario dict ``d`` whose ``filters`` hold only its (first) filter of type ``kind``."""
+    entries = [f for f in d.get("filters", []) if f.get("type") == kind]
+    if not entries:
+        raise ValueError(f"the scenario has no filter of type {kind!r} (filters: {d.get('filters')})")
+    out = dict(d)
+    out["filters"] = [dict(entries[0])]
+    out["name"] = f"{d['name']}-{kind}"
+    return out
+
+
+def write_yaml(path: Path, d: dict) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    return path
+
+
+def sphere_points(n: int, radius: float) -> np.ndarray:
+    """``n`` points spread evenly over a sphere of ``radius`` (Fibonacci lattice), ``(n, 3)``."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    s = np.sqrt(1.0 - z * z)
+    return radius * np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+
+@dataclass
+class Prepared:
+    """A scenario ready for in-process runs: what ``mc.engine`` computes once per process."""
+
+    scenario: Any
+    setup: Any
+    truth: Any
+    exact: Any
+    filters: list  # FilterSetup, in scenario order
+    bounds: Any
+
+    def filter(self, kind: str):
+        for fs in self.filters:
+            if fs.kind == kind:
+                return fs
+        raise ValueError(f"no filter of type {kind!r}")
+
+
+def prepare(d: dict) -> Prepared:
+    """Validate scenario dict ``d``; its setup, truth, exact measurements, filters and bounds.
+
+    Built by the engine's own once-per-process preparation (``mc.engine._prepared``), so
+    the in-process sections run exactly what ``spmc run`` runs.
+    """
+    from stereopose_mc.config.schema import Scenario
+    from stereopose_mc.mc import engine
+
+    scn, setup, truth, exact, filters, bounds = engine._prepared(Scenario.model_validate(d).model_dump_json())
+    return Prepared(scn, setup, truth, exact, list(filters), bounds)
+
+
+def blas_limit(threads: int | None):
+    """Context manager limiting BLAS threads (threadpoolctl), or a no-op when ``threads`` is None."""
+    import contextlib
+
+    if threads is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is in the bench extra
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=threads)
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def _fmt_value(v: float) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "nan"
+    a = abs(v)
+    if a == 0:
+        return "0"
+    if a >= 1e5 or a < 1e-3:
+        return f"{v:.3g}"
+    if a >= 100:
+        return f"{v:.0f}"
+    if a >= 10:
+        return f"{v:.1f}"
+    return f"{v:.3g}"
+
+
+def format_table(rows: list[Row]) -> str:
+    """The rows as one aligned plain-text (Markdown-compatible) table."""
+    head = list(COLUMNS)
+    body = [[r.section, r.filter, r.measure, _fmt_value(r.value), r.unit, r.target, r.status, r.note] for r in rows]
+    widths = [max(len(h), *(len(b[i]) for b in body)) if body else len(h) for i, h in enumerate(head)]
+    widths[-1] = len(head[-1])  # the note column is left ragged
+
+    def line(cells):
+        last = len(cells) - 1
+        return "| " + " | ".join(c.ljust(w) if i < last else c for i, (c, w) in enumerate(zip(cells, widths))) + " |"
+
+    sep = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
+    return "\n".join([line(head), sep] + [line(b) for b in body])
+
+
+def write_outputs(rows: list[Row], meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    """Write ``<stem>.csv`` (the table) and ``<stem>.json`` (table + machine + sizes) into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path, json_path = out_dir / f"{stem}.csv", out_dir / f"{stem}.json"
+    with csv_path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(COLUMNS))
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in asdict(r).items()})
+    payload = dict(meta)
+    payload["rows"] = [{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(r).items()}
+                       for r in rows]  # fmt: skip
+    json_path.write_text(json.dumps(payload, indent=2, default=str) + "\n")
+    return csv_path, json_path
