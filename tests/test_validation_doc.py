@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ SUMMARY = ROOT / "docs" / "validation" / "summary.csv"
 def _load():
     spec = importlib.util.spec_from_file_location("make_validation", ROOT / "docs" / "make_validation.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)
     return mod
 
@@ -193,9 +195,13 @@ def test_attitude_rule_uses_initial_and_final_medians():
 
 def test_old_nis_window_flags_only_when_the_window_reaches_before_the_start():
     ts = synthetic_ts(3, 1.0, nis1=43.0 * 5000)
-    # window of 2 steps, start 10 s: the check at t = 10 s spans steps 0..1 (before the start) -> flagged
-    assert mv.old_nis_window_lost(ts, "iekf", {"nis_window_steps": 2, "nis_start_s": 10.0, "nis_ratio": 100}) == 3
-    assert mv.old_nis_window_lost(ts, "iekf", {"nis_window_steps": 2, "nis_start_s": 10.0, "nis_ratio": 5000}) == 0
+    # window of 2 steps, start 15 s: the check at t = 20 s spans steps 1..2 (t = 10, 20 s), reaching before the
+    # start; its mean NIS/dof is (5000 + 1) / 2
+    old = {"nis_window_steps": 2, "nis_start_s": 15.0}
+    assert mv.old_nis_window_lost(ts, "iekf", {**old, "nis_ratio": 2500}) == 3
+    assert mv.old_nis_window_lost(ts, "iekf", {**old, "nis_ratio": 2501}) == 0
+    # start 10 s: that window lies after the start, which the fixed rule (and not the old one alone) uses
+    assert mv.old_nis_window_lost(ts, "iekf", {"nis_window_steps": 2, "nis_start_s": 10.0, "nis_ratio": 100}) == 0
 
 
 def test_side_by_side_table_holds_thesis_and_our_percentiles():
