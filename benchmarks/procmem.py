@@ -12,13 +12,18 @@ Two measurements of one run:
 - **largest single process**: ``ru_maxrss`` of the ``rusage`` that ``os.wait4`` returns
   for the command, which Linux defines as the maximum RSS of the command itself and of
   every descendant it reaped (the largest one, not a sum), tracked by the kernel (no
-  sampling gap).
+  sampling gap). Linux carries a process's high-water mark across ``fork``/``vfork`` +
+  ``exec`` (``signal->maxrss`` takes the old address space's peak at ``exec``), so a
+  command started directly from a big parent (the benchmark process after its in-process
+  sections) would report the parent's peak. The command is therefore started by a small
+  launcher interpreter (``LAUNCHER``, about 10 MiB), which waits for it and reports its
+  ``ru_maxrss``; the launcher itself is left out of the sampled sums.
 """
 
 from __future__ import annotations
 
-import os
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -26,6 +31,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 KIB = 1024
+
+# python -c LAUNCHER REPORT CMD...: run CMD, wait4 it, write "<exit code> <ru_maxrss KiB>" to REPORT
+LAUNCHER = (
+    "import os, subprocess, sys\n"
+    "p = subprocess.Popen(sys.argv[2:])\n"
+    "_, st, ru = os.wait4(p.pid, 0)\n"
+    "code = p.returncode = os.waitstatus_to_exitcode(st)\n"
+    "open(sys.argv[1], 'w').write(f'{code} {ru.ru_maxrss}')\n"
+    "sys.exit(code if 0 <= code < 256 else 1)\n"
+)
 
 
 def _children_map() -> dict[int, list[int]]:
@@ -83,9 +98,11 @@ class MemorySample:
     max_process_rss_kib: int
 
 
-def sample_tree(pid: int) -> MemorySample:
-    """RSS and PSS summed over ``pid`` and its descendants, now."""
+def sample_tree(pid: int, include_root: bool = True) -> MemorySample:
+    """RSS and PSS summed over ``pid`` (unless ``include_root`` is False) and its descendants, now."""
     pids = descendants(pid)
+    if not include_root:
+        pids = [p for p in pids if p != pid]
     rss = [_status_kib(p, "VmRSS") for p in pids]
     pss = [_pss_kib(p) for p in pids]
     return MemorySample(sum(rss), sum(pss), sum(1 for r in rss if r > 0), max(rss, default=0))
@@ -110,16 +127,19 @@ class PeakMemory:
 
 def run_and_measure(cmd: list[str], interval_s: float = 0.1, env: dict | None = None,
                     cwd: Path | None = None) -> PeakMemory:  # fmt: skip
-    """Run ``cmd`` to completion while sampling its process tree every ``interval_s``."""
-    with tempfile.TemporaryFile("w+") as out_f, tempfile.TemporaryFile("w+") as err_f:
+    """Run ``cmd`` (through ``LAUNCHER``) to completion, sampling its process tree every ``interval_s``."""
+    with tempfile.TemporaryDirectory() as td, tempfile.TemporaryFile("w+") as out_f, \
+            tempfile.TemporaryFile("w+") as err_f:  # fmt: skip
+        report = Path(td) / "wait4.txt"
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, stdout=out_f, stderr=err_f, env=env, cwd=cwd)
+        proc = subprocess.Popen([sys.executable, "-c", LAUNCHER, str(report), *cmd], stdout=out_f, stderr=err_f,
+                                env=env, cwd=cwd)  # fmt: skip
         peak = {"rss": 0, "pss": 0, "n": 0, "proc": 0, "samples": 0}
         stop = threading.Event()
 
         def sampler() -> None:
             while not stop.is_set():
-                s = sample_tree(proc.pid)
+                s = sample_tree(proc.pid, include_root=False)
                 peak["rss"] = max(peak["rss"], s.rss_kib)
                 peak["pss"] = max(peak["pss"], s.pss_kib)
                 peak["n"] = max(peak["n"], s.processes)
@@ -130,16 +150,17 @@ def run_and_measure(cmd: list[str], interval_s: float = 0.1, env: dict | None = 
         th = threading.Thread(target=sampler, daemon=True)
         th.start()
         try:
-            _, status, ru = os.wait4(proc.pid, 0)
-            code = os.waitstatus_to_exitcode(status)
-            proc.returncode = code  # reaped here, not by Popen
-            ru_kib = ru.ru_maxrss  # Linux: KiB
+            code = proc.wait()
         finally:
             stop.set()
             th.join()
         wall = time.perf_counter() - t0
+        try:
+            rc, ru_kib = (int(v) for v in report.read_text().split())
+        except (OSError, ValueError):
+            rc, ru_kib = code if code else 1, 0
         out_f.seek(0)
         err_f.seek(0)
         stdout, stderr = out_f.read(), err_f.read()
-    return PeakMemory(code, wall, peak["rss"] / KIB, peak["pss"] / KIB, peak["n"], peak["proc"] / KIB, ru_kib / KIB,
+    return PeakMemory(rc, wall, peak["rss"] / KIB, peak["pss"] / KIB, peak["n"], peak["proc"] / KIB, ru_kib / KIB,
                       peak["samples"], interval_s, stdout, stderr)  # fmt: skip

@@ -1163,8 +1163,8 @@ def write_doc(runs: dict[str, RunTables], stats: dict[str, CaseStats], findings:
       "trials whose NIS was consistent from the second step on were declared lost. The comparison showed it as "
       "IEKF trials of case D lost at t = 10 s with errors like case B's. Fixed in `stereopose_mc/mc/trial.py` (the "
       "whole window must lie in t >= `nis_start_s`); regression test `tests/mc/test_lost_filter_window.py`. "
-      "Recomputed from this run's NIS series, the old window would have flagged these numbers of IEKF trials "
-      "(lost by the fixed rule in brackets): "
+      "Recomputed from this run's NIS series, the windows that reached back before `nis_start_s` would have "
+      "flagged these numbers of IEKF trials (trials lost by the fixed rule in brackets): "
       + ", ".join(f"case {c} {n} ({lost_now[c]}) of {trials_per[c]}" for c, n in lost_old.items()) + ".\n")
 
     # ---------------------------------------------------------------- run time
@@ -1274,8 +1274,9 @@ def _summary_discussion(stats: dict[str, CaseStats]) -> str:
             f"{n} in case(s) {', '.join(v)}" for n, v in higher.items()) + " (see the ratio table).")
     if lower:
         out.append(f"Ours is lower in every case for {', '.join(lower)}. The thesis does not give its filter's R; it "
-                   "says R was chosen from the imposed noise and the filter innovation, i.e. looser than the 1e-5 "
-                   "image noise, while ours is the true noise, so our filter keeps more of the optical-flow "
+                   "says R was chosen from the imposed noise and the filter innovation, which suggests a looser R "
+                   "than the 1e-5 image noise, while ours is the true noise: a likely reason why our filter keeps "
+                   "more of the optical-flow "
                    "precision (angular and translational velocity).")  # fmt: skip
     ekf_lost = {c: cs.by_kind("ekf") for c, cs in stats.items() if cs.by_kind("ekf") is not None}
     if ekf_lost:

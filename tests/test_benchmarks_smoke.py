@@ -180,11 +180,19 @@ def test_filterpy_run_tracks_ours(cfg):
 
 
 def test_procmem_sees_a_known_allocation():
-    code = "import time, numpy as np; a = np.ones(32 * 2**20); time.sleep(0.6)"  # 256 MiB touched
+    """A child touching 256 MiB is measured at 256-512 MiB, however big the parent is.
+
+    The parent (this process) first touches 640 MiB: a child forked and exec'ed directly
+    from it would inherit that high-water mark in ``ru_maxrss``; the launcher prevents it.
+    """
+    big = np.ones(80 * 2**20)  # 640 MiB, touched
+    code = "import time, numpy as np; a = np.ones(32 * 2**20); time.sleep(0.6)"  # 256 MiB, touched
     pm = run_and_measure([sys.executable, "-c", code], interval_s=0.05)
+    del big
     assert pm.returncode == 0
     assert 256 <= pm.tree_rss_mib < 512
     assert 256 <= pm.wait4_maxrss_mib < 512
+    assert pm.max_processes == 1  # the launcher is not counted
 
 
 def test_fit_exponent_recovers_a_power_law():

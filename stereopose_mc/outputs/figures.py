@@ -386,9 +386,13 @@ def build_figures(
                 "percentile) and 90 % (5th-95th) of them; dotted line: start of the error window "
                 "(thesis figures 6.1-6.6).")  # fmt: skip
             if state_dim:
-                c = consistency(timeseries, label, "nees", state_dim)
-                add(consistency_figure(c, label, "NEES", f"n = {state_dim}"), f"nees-{s}", f"{label}: NEES vs time",
-                    f"Mean NEES over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*{state_dim})/M.")
+                # the unit-norm quaternion takes one direction out of the state error: n - 1 dof
+                dof = state_dim - 1
+                c = consistency(timeseries, label, "nees", dof)
+                add(consistency_figure(c, label, "NEES", f"{dof} dof (n = {state_dim}, unit quaternion)"),
+                    f"nees-{s}", f"{label}: NEES vs time",
+                    f"Mean NEES over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*{dof})/M "
+                    f"with {dof} = n - 1 degrees of freedom (the quaternion's norm is not an error direction).")
             else:
                 fs.notes.append(f"{label}: NEES figure skipped: manifest.json has no state_dim")
             c = consistency(timeseries, label, "nis", None)
