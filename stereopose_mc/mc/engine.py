@@ -94,6 +94,8 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> Ch
     if timeseries != "none":
         keep = None if timeseries == "full" else (np.asarray(trials) < SUMMARY_TRIALS)
         ts = tables.timeseries_frame(res, truth.t, keep)
+        # filter-major blocks -> (trial, filter in scenario order, step), as in the merged file
+        ts = ts.sort_values("trial", kind="stable").reset_index(drop=True) if len(ts) else None
     first = int(np.min(trials))
     timing = tables.timing_frame(res, first)
     return ChunkOutput(np.asarray(trials), tdf, ts, timing, res.runtime_s, int(tdf["diverged"].sum()))
@@ -157,7 +159,7 @@ def _parquet_meta(scn: Scenario, shash: str, kind: str) -> dict[str, str]:
 
 def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str]) -> None:
     # the trials file is the chunk's commit marker: written last
-    if out.timeseries_df is not None:
+    if out.timeseries_df is not None and len(out.timeseries_df):
         rundir.write_parquet(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_df, meta)
     rundir.write_parquet(chunk_dir / _chunk_name("timing", out.trials), out.timing_df, meta)
     rundir.write_parquet(chunk_dir / _chunk_name("trials", out.trials), out.trials_df, meta)
@@ -208,12 +210,17 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str]) -> t
     trials = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
     trials = fsort(trials).sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
     rundir.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"))
-    for kind, keys in (("timeseries", ["trial", "_f", "step"]), ("timing", ["trial", "_f"])):
-        files = sorted((out / "chunks").glob(f"{kind}-*.parquet"))
-        if files:
-            df = fsort(pd.concat([pd.read_parquet(f) for f in files], ignore_index=True))
-            df = df.sort_values(keys, kind="stable").drop(columns="_f").reset_index(drop=True)
-            rundir.write_parquet(out / f"{kind}.parquet", df, _parquet_meta(scn, shash, kind))
+    files = sorted((out / "chunks").glob("timing-*.parquet"))
+    if files:
+        df = fsort(pd.concat([pd.read_parquet(f) for f in files], ignore_index=True))
+        df = df.sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
+        rundir.write_parquet(out / "timing.parquet", df, _parquet_meta(scn, shash, "timing"))
+    # the time series can be large: streamed chunk by chunk (each chunk file is already
+    # sorted by trial, filter, step, and the chunks are disjoint trial ranges, so file
+    # order by first trial is trial order)
+    files = sorted((out / "chunks").glob("timeseries-*.parquet"))
+    if files:
+        rundir.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"))
     pt = tables.percentile_table(trials, list(scn.percentiles))
     rundir.atomic_write_text(out / "percentiles.csv", pt.to_csv(index=False, float_format="%.10g"))
     rundir.write_parquet(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))

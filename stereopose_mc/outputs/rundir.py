@@ -102,6 +102,53 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None 
         raise
 
 
+def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, str] | None = None,
+                         row_group_rows: int = 262_144) -> int:
+    """Concatenate Parquet files into one, streaming, with fixed-size row groups.
+
+    Only one source file and one row group are in memory at a time, so memory stays
+    bounded whatever the total size. Row groups hold exactly ``row_group_rows`` rows
+    (the last one fewer) whatever the sources' sizes, so the output's bytes do not
+    depend on how the rows were split into sources. Returns the number of rows.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    writer = None
+    buffered: list[pa.Table] = []
+    n_buf = n_all = 0
+    try:
+        for src in sources:
+            t = pq.read_table(src)
+            meta = dict(t.schema.metadata or {})
+            meta.pop(b"pandas", None)
+            for k, v in (metadata or {}).items():
+                meta[k.encode()] = str(v).encode()
+            t = t.replace_schema_metadata(meta)
+            if writer is None:
+                writer = pq.ParquetWriter(tmp, t.schema, compression="zstd", write_statistics=False)
+            buffered.append(t)
+            n_buf += t.num_rows
+            n_all += t.num_rows
+            while n_buf >= row_group_rows:
+                merged = pa.concat_tables(buffered)
+                writer.write_table(merged.slice(0, row_group_rows), row_group_size=row_group_rows)
+                rest = merged.slice(row_group_rows)
+                buffered, n_buf = [rest], rest.num_rows
+        if writer is None:
+            raise ValueError("no source files to concatenate")
+        if n_buf:
+            writer.write_table(pa.concat_tables(buffered), row_group_size=row_group_rows)
+        writer.close()
+        os.replace(tmp, path)
+    except BaseException:
+        if writer is not None:
+            writer.close()
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return n_all
+
+
 def read_parquet_metadata(path: Path) -> dict[str, str]:
     md = pq.read_schema(path).metadata or {}
     return {k.decode(): v.decode() for k, v in md.items()}
