@@ -32,7 +32,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_discrete_lyapunov
-from scipy.signal import savgol_coeffs
 
 Array = NDArray[np.float64]
 
@@ -54,6 +53,8 @@ def savgol_weights(window: int, polyorder: int, dt: float) -> Array:
         raise ValueError(f"need 0 < polyorder ({polyorder}) < window ({window})")
     if not dt > 0:
         raise ValueError(f"dt must be > 0 (got {dt})")
+    from scipy.signal import savgol_coeffs  # scipy.signal takes ~0.5 s to import: only when used
+
     return np.asarray(savgol_coeffs(window, polyorder, deriv=1, delta=dt, pos=window - 1, use="dot"), dtype=float)
 
 

@@ -95,11 +95,15 @@ def ekf_update(x: Array, P: Array, y: Array, measure: Measure, R: Array, rows: A
     hx, H = measure(x, rows, jac=True)
     R = np.broadcast_to(R, y.shape)
     S = innovation_covariance(P, H, R)
-    K = gain(P, H, S)
     nu = y - hx
+    # one solve for the gain and the NIS: S^-1 [H P | nu]
+    HP = H @ P
+    Z = np.linalg.solve(S, np.concatenate([HP, nu[..., None]], axis=-1))
+    K = np.swapaxes(Z[..., :-1], -1, -2)
+    nis = np.einsum("...i,...i->...", nu, Z[..., -1])
     x_new = x + np.einsum("...ij,...j->...i", K, nu)
     B = x.shape[0]
-    return Update(x_new, joseph(P, K, H, R), nu, mahalanobis2(nu, S), np.ones(B, int), np.ones(B, bool))
+    return Update(x_new, joseph(P, K, H, R), nu, nis, np.ones(B, int), np.ones(B, bool))
 
 
 def map_cost(x: Array, x_prior: Array, P_prior: Array, y: Array, hx: Array, R: Array) -> Array:
