@@ -219,13 +219,13 @@ class Prepared:
 def prepare(d: dict) -> Prepared:
     """Validate scenario dict ``d``; its setup, truth, exact measurements, filters and bounds.
 
-    Built by the engine's own once-per-process preparation (``mc.engine._prepared``), so
+    Built by the engine's own once-per-process preparation (``mc.engine.prepare``), so
     the in-process sections run exactly what ``spmc run`` runs.
     """
     from stereopose_mc.config.schema import Scenario
     from stereopose_mc.mc import engine
 
-    scn, setup, truth, exact, filters, bounds = engine._prepared(Scenario.model_validate(d).model_dump_json())
+    scn, setup, truth, exact, filters, bounds = engine.prepare(Scenario.model_validate(d))
     return Prepared(scn, setup, truth, exact, list(filters), bounds)
 
 

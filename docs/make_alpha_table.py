@@ -17,10 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from stereopose_mc.config import load_scenario
-from stereopose_mc.config.resolve import filter_setup_of, setup_of
-from stereopose_mc.mc.trial import Bounds, run_chunk
-from stereopose_mc.sim import measurements as meas
-from stereopose_mc.sim.truth import simulate_truth
+from stereopose_mc.mc.engine import prepare
+from stereopose_mc.mc.trial import run_chunk
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "angular-acceleration.md"
@@ -35,12 +33,7 @@ def run_source(source: str | None, trials: int) -> dict[str, dict]:
     pm = {**base.measurements.inertia_pseudo_measurement.model_dump(), **pm}
     scn = load_scenario(ROOT / "configs" / "caseB-differentiated.yaml",
                         {"measurements": {**base.measurements.model_dump(), "inertia_pseudo_measurement": pm}})  # fmt: skip
-    setup = setup_of(scn)
-    truth = simulate_truth(setup)
-    exact = meas.noise_free(setup, truth)
-    filters = [filter_setup_of(f, setup) for f in scn.filters]
-    d = scn.divergence
-    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
+    _, setup, truth, exact, filters, bounds = prepare(scn)
     res = run_chunk(scn.seed, np.arange(trials), setup, truth, exact, filters, bounds)
     w = truth.t >= scn.time.error_window_start_s - 1e-9
     out = {}

@@ -32,7 +32,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -659,21 +659,14 @@ def block_nees_case(run_dir: Path, n_trials: int) -> pd.DataFrame:
     block NEES at the final step, the NEES of the feature points in L, and the final errors (for a cross-check)."""
     from threadpoolctl import threadpool_limits
 
-    from stereopose_mc.config.resolve import filter_setup_of, setup_of
     from stereopose_mc.config.schema import Scenario
     from stereopose_mc.core import camera
     from stereopose_mc.core import state as st
-    from stereopose_mc.mc.trial import Bounds, errors, run_chunk, state_error
-    from stereopose_mc.sim import measurements as meas
-    from stereopose_mc.sim.truth import simulate_truth
+    from stereopose_mc.mc.trial import errors, run_chunk, state_error
+    from stereopose_mc.mc.engine import prepare
 
     scn = Scenario.model_validate(yaml.safe_load((run_dir / "config.yaml").read_text()))
-    setup = setup_of(scn)
-    truth = simulate_truth(setup)
-    exact = meas.noise_free(setup, truth)
-    fsets = [filter_setup_of(f, setup) for f in scn.filters]
-    d = scn.divergence
-    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
+    _, setup, truth, exact, fsets, bounds = prepare(scn)
     trials = np.arange(min(n_trials, scn.trials))
     with threadpool_limits(limits=1):
         res = run_chunk(scn.seed, trials, setup, truth, exact, fsets, bounds)

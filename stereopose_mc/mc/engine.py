@@ -34,11 +34,13 @@ import pandas as pd
 import yaml
 from threadpoolctl import threadpool_limits
 
-from ..config.resolve import filter_setup_of, setup_of
+from typing import NamedTuple
+
+from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..outputs import rundir, tables
 from ..sim import measurements as meas
-from ..sim.truth import simulate_truth
+from ..sim.truth import Truth, simulate_truth
 from .trial import Bounds, run_chunk
 
 TIMESERIES_MODES = ("none", "summary", "full")
@@ -56,17 +58,32 @@ def scenario_hash(scn: Scenario) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
-@functools.lru_cache(maxsize=4)
-def _prepared(scenario_json: str):
-    """Setup, truth and exact measurements of a scenario, computed once per process."""
-    scn = Scenario.model_validate_json(scenario_json)
+class Prepared(NamedTuple):
+    """What every chunk of a scenario shares: SI setup, truth, exact measurements, filters."""
+
+    scenario: Scenario
+    setup: Setup
+    truth: Truth
+    exact: meas.Measurements
+    filters: list[FilterSetup]
+    bounds: Bounds
+
+
+def prepare(scn: Scenario) -> Prepared:
+    """Resolve a scenario and compute its (trial-independent) truth and exact measurements."""
     setup = setup_of(scn)
     truth = simulate_truth(setup)
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
     bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
-    return scn, setup, truth, exact, filters, bounds
+    return Prepared(scn, setup, truth, exact, filters, bounds)
+
+
+@functools.lru_cache(maxsize=4)
+def _prepared(scenario_json: str) -> Prepared:
+    """``prepare`` computed once per process and scenario (chunks of a run share it)."""
+    return prepare(Scenario.model_validate_json(scenario_json))
 
 
 @dataclass

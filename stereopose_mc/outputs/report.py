@@ -157,7 +157,6 @@ def load_run(run_dir: Path) -> RunData:
     if problems:
         raise ReportError(run_dir, problems)
     return RunData(run_dir, config, manifest, trials, optional["timeseries.parquet"], optional["timing.parquet"])
-    return data
 
 
 def is_run_dir(path: Path) -> bool:
