@@ -57,6 +57,10 @@ def run(
             res = engine.run(scn, out, opts, prog)
     except (engine.RunError, RunDirError) as exc:
         fail(str(exc))
+    except KeyboardInterrupt:
+        typer.echo(f"\ninterrupted: finished chunks are kept in {out}/chunks; continue with: spmc run --resume {out}",
+                   err=True)  # fmt: skip
+        raise typer.Exit(130) from None
     if report:
         from ..outputs import report as rep
 

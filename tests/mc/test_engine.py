@@ -136,3 +136,21 @@ def test_dask_local_cluster_equals_local_run(scenario, reference, tmp_path):
     out = tmp_path / "run"
     run_ok("run", scenario, "--out", out, "--jobs", 2, "--chunk-size", 3, "--backend", "dask")
     same_bytes(reference, out)
+
+
+def test_ctrl_c_keeps_finished_chunks_and_says_how_to_resume(tmp_path):
+    scn = write_scenario(tmp_path / "s.yaml", trials=200, time=SHORT)
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "stereopose_mc.cli.main", "run", str(scn), "--out", str(out), "--chunk-size", "2",
+           "--no-report"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
+    deadline = time.time() + 120
+    while time.time() < deadline and not (out.is_dir() and list((out / "chunks").glob("trials-*.parquet"))):
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err
+    assert f"spmc run --resume {out}" in err
+    assert list((out / "chunks").glob("trials-*.parquet"))
+    assert not (out / "trials.parquet").exists()
