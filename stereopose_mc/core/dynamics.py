@@ -88,11 +88,6 @@ def f_at(x: Array, t: float, orbit: Orbit) -> Array:
     return f(x, lk.r, lk.nu_dot, lk.nu_ddot, orbit.mu)
 
 
-def rk4_step(x: Array, t: float, h: float, orbit: Orbit) -> Array:
-    """One classical Runge-Kutta step of length ``h`` from ``(t, x)``."""
-    return propagate(x, t, h, orbit, 1)
-
-
 def propagate(x: Array, t: float, dt: float, orbit: Orbit, substeps: int = 1) -> Array:
     """Integrate ``f`` from ``t`` to ``t + dt`` with ``substeps`` classical RK4 steps.
 

@@ -61,11 +61,6 @@ def innovation_covariance(P: Array, H: Array, R: Array) -> Array:
     return S
 
 
-def gain(P: Array, H: Array, S: Array) -> Array:
-    """``K = P H^T S^-1``, computed as ``solve(S, H P)^T`` (``S``, ``P`` symmetric)."""
-    return np.swapaxes(np.linalg.solve(S, H @ P), -1, -2)
-
-
 def joseph(P: Array, K: Array, H: Array, R: Array) -> Array:
     """Joseph form ``P+ = (I - K H) P (I - K H)^T + K R K^T`` (``R`` diagonal), symmetrized."""
     IKH = np.eye(P.shape[-1]) - K @ H
