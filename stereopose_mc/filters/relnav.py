@@ -9,8 +9,9 @@ This layer binds the generic kernels of ``core.filters`` to the model of MODEL.m
   du_L, dv_L]`` (+ ``d``), feature-major, then (when enabled) the 3 rows of the inertia
   pseudo-measurement with observed value 0; ``R`` is diagonal from the filter's own
   standard deviations;
-- the quaternion is renormalized after every prediction and every update (and at each
-  IEKF iterate); the covariance is not projected.
+- the quaternion is renormalized after every prediction and every update (IEKF
+  iterates are not: ``h`` does not depend on the quaternion's norm); the covariance is
+  not projected.
 """
 
 from __future__ import annotations
