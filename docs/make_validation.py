@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from stereopose_mc.outputs.report import RunData, load_run
 from stereopose_mc.data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_percentiles
 from stereopose_mc.mc.trial import ERROR_NAMES
 from stereopose_mc.outputs import tables
@@ -707,22 +708,15 @@ def block_nees_case(run_dir: Path, n_trials: int) -> pd.DataFrame:
 
 
 @dataclass
-class RunTables:
-    case: str
-    path: Path
-    config: dict[str, Any]
-    manifest: dict[str, Any]
-    trials: pd.DataFrame
-    timeseries: pd.DataFrame | None
-    timing: pd.DataFrame | None
+class RunTables(RunData):
+    """A run directory's tables (``outputs.report.load_run``) and its thesis case letter."""
+
+    case: str = ""
 
 
 def load_case(case: str) -> RunTables:
-    p = RUNS / f"case{case}"
-    ts = pd.read_parquet(p / "timeseries.parquet") if (p / "timeseries.parquet").is_file() else None
-    tm = pd.read_parquet(p / "timing.parquet") if (p / "timing.parquet").is_file() else None
-    return RunTables(case, p, yaml.safe_load((p / "config.yaml").read_text()),
-                     json.loads((p / "manifest.json").read_text()), pd.read_parquet(p / "trials.parquet"), ts, tm)
+    d = load_run(RUNS / f"case{case}")
+    return RunTables(**{f: getattr(d, f) for f in d.__dataclass_fields__}, case=case)
 
 
 # ============================================================================= shared settings
