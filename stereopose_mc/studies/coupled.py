@@ -56,14 +56,12 @@ from numpy.typing import NDArray
 from ..core import quaternion as qt
 from ..core.dynamics import rotational_rates, translational_acceleration
 from ..core.orbit import MU_EARTH
+from ..core.state import OMEGA, POINTS0, QUAT, RHO, RHO_DOT
 
 Array = NDArray[np.float64]
 
-RHO = slice(0, 3)
-RHO_DOT = slice(3, 6)
-OMEGA = slice(6, 9)
-QUAT = slice(9, 13)
-BASE = 13
+# the first 13 components are laid out as in the filter state (core.state)
+BASE = POINTS0
 
 
 def simplified_size(n_points: int) -> int:
