@@ -1,4 +1,5 @@
-# The README's commands. Each creates .venv/ if missing and installs what it needs.
+# The README's commands. Each creates .venv/ if missing and installs what it needs,
+# at the versions pinned in constraints.txt (the golden percentile tables depend on them).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -9,9 +10,9 @@ STAMP := $(VENV)/.installed
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
 
-$(STAMP): pyproject.toml | $(BIN)/python
+$(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,dask,bench]'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,dask,bench]'
 	touch $(STAMP)
 
 venv: $(STAMP)
