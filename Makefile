@@ -27,7 +27,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/run.py
 
 goldens: $(STAMP)
-	$(BIN)/python -m stereopose_mc.regression refresh
+	$(BIN)/python -m stereopose_mc.outputs.goldens refresh
 
 validation: $(STAMP)
 	$(BIN)/python docs/make_validation.py

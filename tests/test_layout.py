@@ -73,3 +73,19 @@ def test_core_has_modules():
 def test_core_imports_only_numpy_scipy_stdlib(path):
     depth = len(path.relative_to(CORE).parts)  # core/x.py -> 1, core/sub/x.py -> 2
     assert forbidden_imports(path.read_text(encoding="utf-8"), depth) == [], path
+
+
+PACKAGE = CORE.parent
+LAYERS = {"cli", "outputs", "studies", "mc", "filters", "sim", "config", "core", "data"}
+
+
+def test_no_module_at_the_package_root():
+    """Every module sits in the folder of its layer; only ``__init__`` is at the root."""
+    assert sorted(p.name for p in PACKAGE.glob("*.py")) == ["__init__.py"]
+    assert {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists()} <= LAYERS
+
+
+@pytest.mark.parametrize("path", sorted((PACKAGE / "cli").glob("*.py")), ids=lambda p: p.name)
+def test_cli_files_stay_thin(path):
+    """One small file per command group: parse, call one typed function, print."""
+    assert len(path.read_text(encoding="utf-8").splitlines()) <= 200, path

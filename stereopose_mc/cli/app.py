@@ -6,6 +6,7 @@ stderr and exit with code 2, writing nothing.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
@@ -26,3 +27,17 @@ def load_or_exit(path: Path, overrides: dict | None = None):
         return load_scenario(path, overrides)
     except ScenarioError as exc:
         fail([str(p) for p in exc.problems])
+
+
+def echo_json(obj: dict) -> None:
+    """Print ``obj`` as one line of strict JSON (no NaN/inf)."""
+    typer.echo(json.dumps(obj, allow_nan=False))
+
+
+def emit(r: dict, lines, as_json: bool) -> None:
+    """Print a study's result: one JSON object with ``--json``, else the text lines ``lines(r)``."""
+    if as_json:
+        echo_json(r)
+        return
+    for line in lines(r):
+        typer.echo(line)

@@ -37,7 +37,7 @@ def simulate(
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
-    from ..simulate import simulate as run_simulate
+    from ..outputs.simulation import simulate as run_simulate
 
     scn = load_or_exit(scenario)
     out = out or Path("runs") / f"{scn.name}-sim"

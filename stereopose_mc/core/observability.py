@@ -34,7 +34,7 @@ Two layers:
    in scaled coordinates with chosen directions projected out (:func:`gramian_eigen`), the
    directions that are invisible to ``h`` by construction (the quaternion norm, the
    body-frame gauge, the centre-of-mass shift), and the CRLB ``(W + P0^-1)^-1``. The
-   scenario plumbing is in ``stereopose_mc/observability_study.py``.
+   scenario plumbing is in ``stereopose_mc/studies/observability.py``.
 
 All kernels take any leading batch axes ``(...)``; :func:`rank_analysis`,
 :func:`gramian_eigen` and :func:`crlb_covariance` work on one matrix.

@@ -1,1 +1,1 @@
-"""The relative-navigation filters: the scenario's EKF / IEKF built on ``core.filters``."""
+"""The relative-navigation filters: the scenario's EKF / IEKF built on ``core.kalman``."""

@@ -1,6 +1,6 @@
 """One filter step of the relative-navigation problem, batched over trials.
 
-This layer binds the generic kernels of ``core.filters`` to the model of MODEL.md:
+This layer binds the generic kernels of ``core.kalman`` to the model of MODEL.md:
 
 - prediction from the posterior at ``t_{k-1}``: ``x-`` by RK4 (``substeps`` per step)
   of ``core.dynamics.f``; ``F`` evaluated at the posterior ``x+(t_{k-1})``;
@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
 from ..core import camera, dynamics, jacobians, state as st
-from ..core import filters as kf
+from ..core import kalman as kf
 from ..core.inertia import h_pseudo
 from ..core.orbit import leader_kinematics
 
@@ -67,7 +67,7 @@ class StepMeasurement:
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):
-    """The ``measure(x, rows, jac)`` callable of ``core.filters`` for this step."""
+    """The ``measure(x, rows, jac)`` callable of ``core.kalman`` for this step."""
     lk = leader_kinematics(setup.orbit, step.t)
     vis = np.flatnonzero(step.visible)
 

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from ..config.resolve import FilterSetup, Setup
 from ..core import quaternion as qt
 from ..core import state as st
-from ..core import filters as kf
+from ..core import kalman as kf
 from ..filters import relnav
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
@@ -252,7 +252,7 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
 
 def _nees(x: Array, P: Array, x_true: Array) -> Array:
     """``e^T P^-1 e`` of the full state error (q sign-aligned)."""
-    from ..core.filters import mahalanobis2
+    from ..core.kalman import mahalanobis2
 
     with np.errstate(all="ignore"):
         try:

@@ -1,8 +1,11 @@
-"""Model studies of the thesis (chapter 2): relative-dynamics models compared.
+"""Analyses built on the layers below (thesis chapters 2, 4 and 7).
 
 - :mod:`.cw`: closed-form Clohessy-Wiltshire propagation and state-transition matrix;
 - :mod:`.coupled`: the simplified coupled feature-point model (the package's) and the fully
   coupled Segal-Gurfil model (thesis eqs. 2.40-2.42, misprints corrected), batched;
 - :mod:`.dynamics_study`: the studies of thesis section 2.5 as figures and tables
-  (``spmc dynamics``).
+  (``spmc dynamics``);
+- :mod:`.observability`: Hermann-Krener rank test and the filter-state observability Gramian
+  (``spmc observability``);
+- :mod:`.mass_properties`: mass properties of a closed mesh (``spmc inertia``).
 """

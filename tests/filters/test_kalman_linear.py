@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereopose_mc.core import filters as kf
+from stereopose_mc.core import kalman as kf
 
 
 def textbook_kf(x, P, y, H, R):

@@ -10,7 +10,7 @@ from scipy import stats
 
 from stereopose_mc.config import load_scenario_text
 from stereopose_mc.config.resolve import filter_setup_of, setup_of
-from stereopose_mc.core import filters as kf
+from stereopose_mc.core import kalman as kf
 from stereopose_mc.filters import relnav
 from stereopose_mc.mc.trial import Bounds, run_chunk
 from stereopose_mc.sim import measurements as meas

@@ -1,7 +1,7 @@
 """CI regression: reduced thesis cases A-F rerun and compared with their golden percentile tables.
 
 The goldens (``tests/regression/goldens/caseX.csv``) are written by ``make goldens``
-(``python -m stereopose_mc.regression refresh``); see docs/outputs.md for when and how
+(``python -m stereopose_mc.outputs.goldens refresh``); see docs/outputs.md for when and how
 to refresh them. The runs are deterministic, so the tolerance is tight (rtol 1e-6).
 """
 
@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 import stereopose_mc.cli.report_cmds  # noqa: F401  (registers 'compare')
-from stereopose_mc import regression as reg
+from stereopose_mc.outputs import goldens as reg
 from stereopose_mc.cli.main import app
 from stereopose_mc.outputs import compare as cmp
 

@@ -1,4 +1,4 @@
-"""``observability_study``: the filter-state Gramian of the bundled thesis cases.
+"""``studies.observability``: the filter-state Gramian of the bundled thesis cases.
 
 References: an empirical observability Gramian from central differences of the NONLINEAR
 simulator (truth integrator + camera model + pseudo-measurement), which uses neither the
@@ -21,7 +21,7 @@ from stereopose_mc.core import camera
 from stereopose_mc.core import observability as ob
 from stereopose_mc.core import state as st
 from stereopose_mc.core.inertia import h_pseudo
-from stereopose_mc.observability_study import (
+from stereopose_mc.studies.observability import (
     analyse,
     filter_gramian,
     filter_state_observability,

@@ -1,4 +1,4 @@
-"""Golden percentile tables of reduced thesis cases, for CI (``python -m stereopose_mc.regression``).
+"""Golden percentile tables of reduced thesis cases, for CI (``python -m stereopose_mc.outputs.goldens``).
 
 Each case ``X`` in A-F is ``configs/caseX.yaml`` with ``trials`` cut to
 :data:`CI_TRIALS` (everything else, including the 100 s duration and the seed, is the
@@ -12,8 +12,8 @@ The runs are deterministic (per-trial SeedSequence children, results independent
 (:data:`RTOL`); it only absorbs last-digit differences of floating-point libraries
 (BLAS, libm) between machines. A real change of the numerics moves cells by far more.
 
-    python -m stereopose_mc.regression refresh [--cases BD] [--jobs 2]
-    python -m stereopose_mc.regression check   [--cases BD] [--jobs 2] [--rtol 1e-6]
+    python -m stereopose_mc.outputs.goldens refresh [--cases BD] [--jobs 2]
+    python -m stereopose_mc.outputs.goldens check   [--cases BD] [--jobs 2] [--rtol 1e-6]
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from .config import ScenarioError, load_scenario
-from .config.schema import Scenario
-from .outputs import compare as cmp
+from ..config import ScenarioError, load_scenario
+from ..config.schema import Scenario
+from . import compare as cmp
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CONFIG_DIR = ROOT / "configs"
 GOLDEN_DIR = ROOT / "tests" / "regression" / "goldens"
 CASES = "ABCDEF"
@@ -58,12 +58,12 @@ def reduced_scenario(case: str, config_dir: Path = CONFIG_DIR, trials: int = CI_
 
 def run_case(case: str, out_dir: Path, jobs: int = 2, config_dir: Path = CONFIG_DIR, trials: int = CI_TRIALS) -> Path:
     """Run the reduced case into ``out_dir`` (no time series, no report); return its ``percentiles.csv``."""
-    from .mc import engine
+    from ..mc import engine
 
     scn = reduced_scenario(case, config_dir, trials)
     chunk = max(1, -(-scn.trials // max(1, jobs)))
     opts = engine.RunOptions(jobs=jobs, chunk_size=chunk, timeseries="none", overwrite=True,
-                             command=["python", "-m", "stereopose_mc.regression", case])  # fmt: skip
+                             command=["python", "-m", "stereopose_mc.outputs.goldens", case])  # fmt: skip
     engine.run(scn, Path(out_dir), opts)
     return Path(out_dir) / "percentiles.csv"
 
@@ -146,7 +146,7 @@ def _parse_cases(text: str | None, config_dir: Path) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m stereopose_mc.regression", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m stereopose_mc.outputs.goldens", description=__doc__.split("\n\n")[0])
     ap.add_argument("command", choices=["refresh", "check"])
     ap.add_argument("--cases", help="cases to run, e.g. 'BD' (default: every configs/caseX.yaml, X in A-F)")
     ap.add_argument("--jobs", type=int, default=2, help="parallel workers per run (default 2)")

@@ -9,12 +9,12 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .config.resolve import setup_of
-from .config.schema import SCHEMA_VERSION, Scenario
-from .core import camera, state as st
-from .outputs.rundir import atomic_write_text, base_manifest, now_iso, prepare_dir, write_json, write_parquet
-from .sim import measurements as meas
-from .sim.truth import Truth, simulate_truth
+from ..config.resolve import setup_of
+from ..config.schema import SCHEMA_VERSION, Scenario
+from ..core import camera, state as st
+from .rundir import atomic_write_text, base_manifest, now_iso, prepare_dir, write_json, write_parquet
+from ..sim import measurements as meas
+from ..sim.truth import Truth, simulate_truth
 
 TRUTH_COLUMNS = [
     "t", "nu", "rho_x", "rho_y", "rho_z", "rho_dot_x", "rho_dot_y", "rho_dot_z",

@@ -32,16 +32,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import Scenario
-from .config.resolve import Setup, setup_of
-from .core import camera, jacobians
-from .core import observability as ob
-from .core import quaternion as qt
-from .core import state as st
-from .core.filters import transition_matrix
-from .core.orbit import leader_kinematics
-from .sim.measurements import channel_sigmas
-from .sim.truth import Truth, simulate_truth
+from ..config import Scenario
+from ..config.resolve import Setup, setup_of
+from ..core import camera, jacobians
+from ..core import observability as ob
+from ..core import quaternion as qt
+from ..core import state as st
+from ..core.kalman import transition_matrix
+from ..core.orbit import leader_kinematics
+from ..sim.measurements import channel_sigmas
+from ..sim.truth import Truth, simulate_truth
+from .jsonfmt import fmt_vec, vec
 
 Array = NDArray[np.float64]
 DEG = np.pi / 180.0
@@ -221,3 +222,117 @@ def filter_state_observability(
     """Build the Gramian of scenario ``s`` (over ``duration_s`` if given) and analyse it."""
     g = filter_gramian(with_duration(setup_of(s), duration_s))
     return {"scenario": s.name, **analyse(g, weak=weak, fix_gauge=fix_gauge)}
+
+
+# --------------------------------------------------------------------------- Hermann-Krener (thesis ch. 4)
+
+
+def euler_observability(omega_degps, inertia, order: int = 1, rtol: float | None = None) -> dict[str, Any]:
+    """The thesis's ch. 4 Hermann-Krener test at ``[omega, inertia]`` as a JSON-ready dict.
+
+    ``null_space`` is a list of unit vectors (one per unobservable direction) in the state
+    ``[w_x, w_y, w_z, I_x, I_y, I_z]`` (rad/s, kg m^2); ``singular_values`` are those of ``O``
+    in SI units; ``scaled_singular_values`` those that decide the rank (unit-free).
+    """
+    omega = np.deg2rad(np.asarray(omega_degps, dtype=float))
+    inertia = np.asarray(inertia, dtype=float)
+    res = ob.euler_rank_test(omega, inertia, order=order, rtol=ob.DEFAULT_RTOL if rtol is None else rtol)
+    expected = inertia / np.linalg.norm(inertia)
+    null = [res.null_space[:, i] for i in range(res.null_space.shape[1])]
+    scale_only = len(null) == 1 and np.allclose(null[0], np.concatenate([np.zeros(3), expected]), atol=1e-8)
+    return {
+        "analysis": "euler",
+        "state": list(ob.STATE_NAMES),
+        "state_units": ["rad/s"] * 3 + ["kg m^2"] * 3,
+        "omega_radps": vec(omega),
+        "inertia_kgm2": vec(inertia),
+        "order": order,
+        "rows": int(3 * (order + 1)),
+        "rank": res.rank,
+        "null_space": [vec(v) for v in null],
+        "singular_values": vec(res.singular_values),
+        "scaled_singular_values": vec(res.scaled_singular_values),
+        "rtol": res.rtol,
+        "null_space_is_inertia_scale": bool(scale_only),
+    }
+
+
+def rank_report_lines(r: dict[str, Any]) -> list[str]:
+    """Text form of a rank-test dict (shared by every observability analysis)."""
+    out: list[str] = []
+    n = len(r["state"])
+    out.append(
+        f"rank {r['rank']} of {n} (O is {r['rows']} x {n}; "
+        f"relative threshold {r['rtol']:g} on the scaled singular values)"
+    )
+    out.append("singular values of O (SI entries): " + " ".join(f"{s:.4e}" for s in r["singular_values"]))
+    out.append("scaled singular values (s/s_max): " + " ".join(f"{s:.4e}" for s in r["scaled_singular_values"]))
+    if not r["null_space"]:
+        out.append("null space: empty (locally weakly observable)")
+        return out
+    names = ", ".join(r["state"])
+    out.append(f"null space ({len(r['null_space'])} unobservable direction(s), unit vectors over {names}):")
+    for v in r["null_space"]:
+        out.append("  " + fmt_vec(v, "9.6f"))
+    return out
+
+
+# --------------------------------------------------------------------------- text form of filter_state_observability
+
+
+def _e(x: float) -> str:
+    return f"{x:.3e}"
+
+
+def filter_state_lines(r: dict[str, Any]) -> list[str]:
+    """Text form of the ``--filter-state`` dict."""
+    out: list[str] = []
+    names = r["state_names"]
+    out.append(
+        f"Observability Gramian of the filter state along the true trajectory of {r['scenario']} "
+        f"({r['scenario_file']}): {r['duration_s']:g} s, dt {r['dt_s']:g} s, {r['measurement_rows']} measurement rows, "
+        f"pseudo-measurement {'on' if r['pseudo_measurement'] else 'off'}, "
+        f"omega0 = {fmt_vec(r['omega0_degps'], '.4g')} deg/s"
+    )
+    out.append("W = sum_k Phi(t_k,t_0)^T H_k^T R^-1 H_k Phi(t_k,t_0), R = the truth's noise; "
+               "scaled W~ = S W S with S = sqrt(diag P0) (unit-free)")  # fmt: skip
+    out.append(f"largest eigenvalue of W~: {_e(r['lambda_max'])}; values below are relative to it "
+               f"(round-off floor n eps = {r['roundoff_floor'] / r['lambda_max']:.1e})")  # fmt: skip
+    qn = r["q_norm"]
+    out.append(
+        f"quaternion norm direction: unobservable by construction (|H_k e_q| / |H_k| <= {qn['max_rel_H_eq']:.1e}); "
+        f"Rayleigh quotient {qn['relative_rayleigh']:.1e} (discretization of Phi); projected out"
+    )
+    gauge = " ".join(f"{v:.1e}" for v in r["gauge_relative_eigenvalues"])
+    fixed = "projected out" if "gauge_x" in r["projected_out"] else "kept (--keep-gauge)"
+    out.append(f"body-frame gauge (rotate q and all P_i together; images unchanged): W~ on it {gauge}; {fixed}")
+    com = " ".join(f"{v:.1e}" for v in r["com_shift_relative_eigenvalues"])
+    out.append(f"centre-of-mass shift (all P_i by c, rho by -D c; images unchanged at t_0): W~ on it {com}")
+    rel = r["relative_eigenvalues"]
+    out.append(f"eigenvalues of W~ ({len(rel)}, ascending, relative): " + " ".join(f"{v:.2e}" for v in rel))
+    cond = r["condition_number"]
+    out.append(
+        f"relative condition lambda_min/lambda_max = {r['relative_condition']:.2e}"
+        + ("" if cond is not None else " (smallest eigenvalue at round-off)")
+    )
+    out.append(f"weakest {len(r['weak_directions'])} directions (unit vectors in scaled coordinates):")
+    for d in r["weak_directions"]:
+        comps = ", ".join(f"{k} {v:+.2f}" for k, v in d["components"].items())
+        out.append(
+            f"  {d['relative']:.2e}  {comps}   [k {d['k_share']:.2f}, com shift {d['com_shift_share']:.2f}, "
+            f"gauge {d['gauge_share']:.2f}]"
+        )
+    out.append("CRLB sqrt(diag((W + P0^-1)^-1)) (SI: m, m/s, rad/s, -, m, -):")
+    sig = r["crlb_sigma"]
+    blocks = [names[0:3], names[3:6], names[6:9], names[9:13]]
+    blocks += [names[13 + 3 * i : 16 + 3 * i] for i in range((len(names) - 15) // 3)] + [names[-2:]]
+    for b in blocks:
+        out.append("  " + "  ".join(f"{k} {sig[k]:.3e}" for k in b))
+    rms = r["crlb_rms"]
+    out.append(
+        f"  RMS error bounds: rho {rms['rho_m']:.3g} m, rho_dot {rms['rho_dot_mps']:.3g} m/s, "
+        f"omega {rms['omega_degps']:.3g} deg/s, theta {rms['theta_deg']:.3g} deg, k1 {rms['k1']:.3g}, k2 {rms['k2']:.3g}"
+    )
+    km = r["k_sigma_measurements_only"]
+    out.append(f"  k from the measurements alone (no prior on k): k1 {km['k1']:.3g}, k2 {km['k2']:.3g}")
+    return out

@@ -1,4 +1,5 @@
-"""Kalman filter kernels: prediction, EKF update, iterated EKF update (batched).
+"""Generic batched Kalman algebra: prediction, EKF update, iterated EKF update (``filters/`` binds it
+to the relative-navigation problem).
 
 Textbook notation (Simon, *Optimal State Estimation*; FilterPy): state ``x (B, n)``,
 covariance ``P (B, n, n)``, transition ``Phi``, process noise ``Q``, measurement
