@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation venv clean
+.PHONY: test demo bench goldens validation venv clean screenshots
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -28,6 +28,22 @@ bench: $(STAMP)
 
 goldens: $(STAMP)
 	$(BIN)/python -m stereopose_mc.outputs.goldens refresh
+
+# Screenshots of the demo report in headless Chromium (Debian: apt-get install chromium), into
+# runs/screenshots/: report-top.png (the first screen) and report-full.png (a long page). Look at them.
+CHROMIUM ?= chromium
+CHROMIUM_FLAGS := --headless --no-sandbox --disable-gpu --disable-quic --no-first-run \
+	--disable-background-networking --disable-component-update --disable-sync --hide-scrollbars
+screenshots: $(STAMP)
+	@command -v $(CHROMIUM) >/dev/null || { echo "needs Chromium: apt-get install chromium (or CHROMIUM=...)"; exit 2; }
+	test -f runs/caseB/trials.parquet || $(BIN)/spmc run configs/caseB.yaml --overwrite --quiet --no-report
+	$(BIN)/spmc report runs/caseB
+	mkdir -p runs/screenshots
+	$(CHROMIUM) $(CHROMIUM_FLAGS) --user-data-dir=$$(mktemp -d) --window-size=1400,1000 \
+		--screenshot=$(CURDIR)/runs/screenshots/report-top.png file://$(CURDIR)/runs/caseB/report.html
+	$(CHROMIUM) $(CHROMIUM_FLAGS) --user-data-dir=$$(mktemp -d) --window-size=1400,7000 \
+		--screenshot=$(CURDIR)/runs/screenshots/report-full.png file://$(CURDIR)/runs/caseB/report.html
+	@echo "-> runs/screenshots/report-top.png, runs/screenshots/report-full.png"
 
 validation: $(STAMP)
 	$(BIN)/python docs/make_validation.py

@@ -14,3 +14,11 @@ def small_caseB(tmp_path) -> Path:
     return write_scenario(
         tmp_path / "small.yaml", trials=6, time={"dt_s": 1.0, "duration_s": 20.0, "error_window_start_s": 5.0}
     )
+
+
+@pytest.fixture(scope="module")
+def quick_scenario(tmp_path_factory) -> Path:
+    """Case B cut to 6 trials of 12 s (13 steps, window from 5 s), shared by a test module."""
+    from cli_helpers import SHORT
+
+    return write_scenario(tmp_path_factory.mktemp("scn") / "quick.yaml", trials=6, time=SHORT)

@@ -11,8 +11,13 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 
+def diverged_text(diverged: dict[str, int]) -> str:
+    """``{"iekf": 1, "ekf": 12}`` -> ``iekf 1, ekf 12`` (finished chunks of a resumed run included)."""
+    return ", ".join(f"{k} {v}" for k, v in diverged.items()) or "0"
+
+
 class _Plain:
-    """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, diverged 1``."""
+    """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, diverged iekf 1, ekf 3``."""
 
     def __init__(self, label: str, every_s: float = 10.0):
         self.label, self.every_s = label, every_s
@@ -20,7 +25,7 @@ class _Plain:
         self.last = -1e9
         self.start_done: int | None = None
 
-    def __call__(self, done: int, total: int, diverged: int) -> None:
+    def __call__(self, done: int, total: int, diverged: dict[str, int]) -> None:
         now = time.perf_counter()
         if self.start_done is None:
             self.start_done = done
@@ -31,7 +36,8 @@ class _Plain:
         rate = (done - self.start_done) / el if el > 0 else 0.0
         eta = f"{(total - done) / rate:.0f} s" if rate > 0 else "?"
         pct = 100.0 * done / total if total else 100.0
-        print(f"{self.label}: {done}/{total} trials ({pct:.0f}%), {rate:.1f} trials/s, ETA {eta}, diverged {diverged}",
+        div = diverged_text(diverged)
+        print(f"{self.label}: {done}/{total} trials ({pct:.0f}%), {rate:.1f} trials/s, ETA {eta}, diverged {div}",
               file=sys.stderr, flush=True)  # fmt: skip
 
 
@@ -49,15 +55,46 @@ def progress_reporter(label: str, quiet: bool = False) -> Iterator:
             TextColumn("{task.fields[rate]}"), TextColumn("ETA"), TimeRemainingColumn(), TimeElapsedColumn(),
             TextColumn("diverged {task.fields[div]}")]  # fmt: skip
     with Progress(*cols, console=console, transient=False) as bar:
-        task = bar.add_task(label, total=None, rate="", div=0)
+        task = bar.add_task(label, total=None, rate="", div="")
         t0 = time.perf_counter()
         first: list[int] = []
 
-        def update(done: int, total: int, diverged: int) -> None:
+        def update(done: int, total: int, diverged: dict[str, int]) -> None:
             if not first:
                 first.append(done)
             el = time.perf_counter() - t0
             rate = (done - first[0]) / el if el > 0 else 0.0
-            bar.update(task, total=total, completed=done, rate=f"{rate:.1f}/s", div=diverged)
+            bar.update(task, total=total, completed=done, rate=f"{rate:.1f}/s", div=diverged_text(diverged))
 
         yield update
+
+
+class _FigureLine:
+    """``caseB: writing report figure 3 (hist-iekf), 2 s``: one line rewriting itself on a terminal,
+    else a line per figure."""
+
+    def __init__(self, label: str):
+        self.label, self.n, self.t0 = label, 0, time.perf_counter()
+        self.tty = sys.stderr.isatty()
+
+    def __call__(self, key: str) -> None:
+        self.n += 1
+        line = f"{self.label}: writing report figure {self.n} ({key}), {time.perf_counter() - self.t0:.0f} s"
+        print(("\r" + line.ljust(78)) if self.tty else line, end="" if self.tty else "\n", file=sys.stderr, flush=True)
+
+    def __enter__(self) -> "_FigureLine":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.tty and self.n:
+            print(file=sys.stderr, flush=True)
+
+
+@contextmanager
+def figure_progress(label: str, quiet: bool = False) -> Iterator:
+    """Yield a ``progress(figure_key)`` callable for report writing (``None`` when quiet)."""
+    if quiet:
+        yield None
+        return
+    with _FigureLine(label) as line:
+        yield line

@@ -12,6 +12,7 @@ from .app import app, fail
 @app.command()
 def report(
     paths: list[Path] = typer.Argument(..., help="run directories, or folders holding run directories"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress lines while figures are written"),
 ) -> None:
     """Write figures/ and report.html for each run (from its tables; nothing is re-run).
 
@@ -20,6 +21,9 @@ def report(
     is missing.
     """
     from ..outputs import report as rep
+    from ..outputs.rundir import RunDirError
+    from ..outputs.runlock import locked
+    from .progress import figure_progress
 
     written: list[Path] = []
     problems: list[str] = []
@@ -33,11 +37,15 @@ def report(
         failed: dict[Path, list[str]] = {}
         for r in runs:
             try:
-                written.append(rep.build_run_report(r))
+                with locked(r, "spmc report"), figure_progress(r.name, quiet) as fprog:
+                    written.append(rep.build_run_report(r, fprog))
                 good.append(r)
             except rep.ReportError as exc:
                 problems += exc.lines()
                 failed[r] = exc.problems
+            except RunDirError as exc:
+                problems.append(str(exc))
+                failed[r] = [str(exc)]
         if is_folder:
             written.append(rep.build_index(p, good, failed))
     for w in written:

@@ -20,9 +20,11 @@ def run(
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
     chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
-    backend: str = typer.Option("loky", "--backend", help="loky | threading | dask"),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address (default: a LocalCluster)"),
-    timeseries: str = typer.Option("full", "--timeseries", help="none | summary (first 100 trials) | full"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="loky (default) | threading | dask"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
+                                            "(default with dask: a LocalCluster); see docs/distributed.md"),
+    timeseries: Optional[str] = typer.Option(None, "--timeseries", help="none | summary (first 100 trials) | full "
+                                             "(default full; on --resume, the run's)"),
     resume: Optional[Path] = typer.Option(None, "--resume", help="resume this run directory (runs missing trials)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing run directory"),
     report: bool = typer.Option(True, "--report/--no-report", help="write figures and report.html at the end"),
@@ -31,15 +33,21 @@ def run(
     """Run a Monte Carlo campaign: every filter of the scenario on every trial."""
     from ..mc import engine
     from ..outputs import tables
-    from .progress import progress_reporter
+    from .progress import figure_progress, progress_reporter
 
+    if scheduler is not None and backend not in (None, "dask"):
+        fail(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
+    backend = backend or ("dask" if scheduler is not None else "loky")
     if backend not in ("loky", "threading", "dask"):
         fail(f"--backend must be loky, threading or dask (got {backend!r})")
     if resume is not None:
         if scenario is not None:
             fail("give either a SCENARIO or --resume DIR, not both")
+        if out is not None and out.resolve() != resume.resolve():
+            fail("--out and --resume conflict: a resumed run stays in its directory")
         try:
             scn = engine.load_run_scenario(resume)
+            timeseries = timeseries or engine.recorded_timeseries(resume)
         except (engine.RunError, ValueError) as exc:
             fail(str(exc))
         out = resume
@@ -48,10 +56,10 @@ def run(
             fail("missing SCENARIO (or --resume DIR)")
         scn = load_or_exit(scenario)
         out = out or Path("runs") / scn.name
-    opts = engine.RunOptions(trials=trials if resume is None else None, seed=seed if resume is None else None,
-                             jobs=jobs, chunk_size=chunk_size, backend=backend, scheduler=scheduler,
-                             timeseries=timeseries, overwrite=overwrite, resume=resume is not None,
-                             command=list(sys.argv))  # fmt: skip
+    opts = engine.RunOptions(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend,
+                             scheduler=scheduler, timeseries=timeseries or "full", overwrite=overwrite,
+                             resume=resume is not None, command=list(sys.argv),
+                             say=lambda line: typer.echo(f"note: {line}", err=True))  # fmt: skip
     try:
         with progress_reporter(scn.name, quiet) as prog:
             res = engine.run(scn, out, opts, prog)
@@ -63,8 +71,13 @@ def run(
         raise typer.Exit(130) from None
     if report:
         from ..outputs import report as rep
+        from ..outputs.runlock import locked
 
-        rep.build_run_report(out)
+        try:
+            with locked(out, "spmc report"), figure_progress(scn.name, quiet) as fprog:
+                rep.build_run_report(out, fprog)
+        except (rep.ReportError, RunDirError) as exc:
+            fail(str(exc))
     if not quiet:
         pt = res.percentiles
         for label in dict.fromkeys(pt["filter"]):

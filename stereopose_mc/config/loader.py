@@ -386,11 +386,40 @@ def _filter_R_positive(data: Any) -> list[tuple[Loc, str]]:
     return out
 
 
+def _duplicate_points(data: Any) -> list[tuple[Loc, str]]:
+    """Feature points given twice (within 1 nm): the same feature measured twice, a singular model."""
+    points = _get(data, "target", "feature_points_m")
+    if not isinstance(points, list):
+        return []
+    out, seen = [], []
+    for i, p in enumerate(points):
+        pv = _ok(_VEC3, p)
+        if pv is None:
+            continue
+        same = [j for j, q in seen if np.allclose(pv, q, rtol=0.0, atol=1e-9)]
+        if same:
+            out.append((("target", "feature_points_m", i), f"feature point {i} {list(pv)} duplicates point {same[0]}"))
+        seen.append((i, np.asarray(pv, dtype=float)))
+    return out
+
+
+def _fits_in_memory(data: Any) -> list[tuple[Loc, str]]:
+    """A trial count whose merged tables cannot fit in this machine's memory (``config.budget``)."""
+    from .budget import memory_problem
+
+    trials = _ok(TypeAdapter(int), data.get("trials"))
+    filters = data.get("filters", [{}])
+    if trials is None or trials < 1:
+        return []
+    msg = memory_problem(trials, len(filters) if isinstance(filters, list) else 1)
+    return [(("trials",), msg)] if msg else []
+
+
 def _semantic_checks(data: Any) -> list[tuple[Loc, str]]:
     """Checks across keys that pydantic's field validators cannot see; run on the raw data."""
     if not isinstance(data, dict):
         return []
-    return _points_behind(data) + _filter_R_positive(data)
+    return _points_behind(data) + _filter_R_positive(data) + _duplicate_points(data) + _fits_in_memory(data)
 
 
 # ----------------------------------------------------------------------- loading
@@ -438,13 +467,18 @@ def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> 
     """Load and validate a scenario YAML file."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        col = exc.start - (raw.rfind(b"\n", 0, exc.start) + 1) + 1
+        msg = (f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at column {col} (file offset {exc.start}); "
+               "save the file as UTF-8")
+        raise ScenarioError([Problem(str(path), line, "", msg)]) from None
     except FileNotFoundError:
         raise ScenarioError([Problem(str(path), None, "", "file not found")]) from None
     except IsADirectoryError:
         raise ScenarioError([Problem(str(path), None, "", "is a directory, not a scenario file")]) from None
-    except UnicodeDecodeError as exc:
-        raise ScenarioError([Problem(str(path), None, "", f"cannot read: not UTF-8 text ({exc.reason})")]) from None
     except OSError as exc:
         raise ScenarioError([Problem(str(path), None, "", f"cannot read: {exc.strerror or exc}")]) from None
     return load_scenario_text(text, str(path), overrides)

@@ -23,7 +23,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,9 +38,10 @@ from threadpoolctl import threadpool_limits
 
 from typing import NamedTuple
 
+from ..config.budget import memory_problem
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
-from ..outputs import rundir, tables
+from ..outputs import integrity, rundir, runlock, tables
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
 from .trial import Bounds, run_chunk
@@ -94,6 +97,7 @@ class ChunkOutput:
     timing_df: pd.DataFrame
     wall_s: float
     diverged: int
+    diverged_by: dict[str, int] = field(default_factory=dict)  # per filter
 
 
 def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> ChunkOutput:
@@ -115,7 +119,8 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> Ch
         ts = ts.sort_values("trial", kind="stable").reset_index(drop=True) if len(ts) else None
     first = int(np.min(trials))
     timing = tables.timing_frame(res, first)
-    return ChunkOutput(np.asarray(trials), tdf, ts, timing, res.runtime_s, int(tdf["diverged"].sum()))
+    by = {str(k): int(v) for k, v in tdf.groupby("filter", sort=False)["diverged"].sum().items()}
+    return ChunkOutput(np.asarray(trials), tdf, ts, timing, res.runtime_s, int(tdf["diverged"].sum()), by)
 
 
 def plan_chunks(todo: np.ndarray, chunk_size: int) -> list[np.ndarray]:
@@ -134,15 +139,6 @@ def _chunk_name(kind: str, trials: np.ndarray) -> str:
     return f"{kind}-{int(trials[0]):07d}-{int(trials[-1]):07d}.parquet"
 
 
-def done_trials(chunk_dir: Path) -> np.ndarray:
-    """Trials already present in finished chunk files."""
-    out = []
-    for p in sorted(chunk_dir.glob("trials-*.parquet")):
-        a, b = p.stem.split("-")[1:3]
-        out.append(np.arange(int(a), int(b) + 1))
-    return np.concatenate(out) if out else np.zeros(0, np.int64)
-
-
 @dataclass
 class RunOptions:
     trials: int | None = None
@@ -155,6 +151,7 @@ class RunOptions:
     overwrite: bool = False
     resume: bool = False
     command: list[str] = field(default_factory=lambda: list(sys.argv))
+    say: Callable[[str], None] | None = None  # notes for the user (rejected chunks, applied options)
 
 
 @dataclass
@@ -166,46 +163,114 @@ class RunResult:
     chunks_run: int
 
 
-Progress = Callable[[int, int, int], None]  # (trials done, total, diverged so far)
+Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
 
 
 def _parquet_meta(scn: Scenario, shash: str, kind: str) -> dict[str, str]:
     return {"stereopose_mc.schema_version": str(SCHEMA_VERSION), "stereopose_mc.table": kind,
-            "stereopose_mc.scenario": scn.name, "stereopose_mc.scenario_hash": shash}  # fmt: skip
+            "stereopose_mc.scenario": scn.name, "stereopose_mc.scenario_hash": shash,
+            "stereopose_mc.seed": str(scn.seed), "stereopose_mc.units": "per field: metadata key 'unit'"}  # fmt: skip
 
 
-def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str]) -> None:
-    # the trials file is the chunk's commit marker: written last
+def _write_table(path: Path, df: pd.DataFrame, meta: dict[str, str]) -> None:
+    """A run table as Parquet, atomically, with the run's metadata and every column's unit."""
+    rundir.write_parquet(path, df, meta, units=tables.COLUMN_UNITS)
+
+
+def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: integrity.RunSpec) -> None:
+    # the sidecar (identity, range, rows, checksums) is the chunk's commit marker: written last
+    first, last = int(out.trials[0]), int(out.trials[-1])
+    meta = {**meta, "stereopose_mc.run_id": spec.run_id, "stereopose_mc.first": str(first),
+            "stereopose_mc.last": str(last)}  # fmt: skip
     if out.timeseries_df is not None and len(out.timeseries_df):
-        rundir.write_parquet(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_df, meta)
-    rundir.write_parquet(chunk_dir / _chunk_name("timing", out.trials), out.timing_df, meta)
-    rundir.write_parquet(chunk_dir / _chunk_name("trials", out.trials), out.trials_df, meta)
+        _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_df, meta)
+    _write_table(chunk_dir / _chunk_name("timing", out.trials), out.timing_df, meta)
+    _write_table(chunk_dir / _chunk_name("trials", out.trials), out.trials_df, meta)
+    integrity.write_sidecar(chunk_dir, spec, first, last, out.diverged_by)
 
 
-def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions) -> Iterable[ChunkOutput]:
-    """Chunk outputs as they finish, in any order."""
+_WATCHING: list[int] = []  # the driver pid this worker process already watches
+
+
+def _die_with(driver_pid: int) -> None:
+    """In a worker process: exit as soon as the driver is gone (killed, even by SIGKILL).
+
+    A daemon thread polls every 0.5 s whether the worker was re-parented or the driver's
+    pid vanished; orphaned workers would otherwise finish their chunks (minutes) for nobody.
+    """
+    if _WATCHING or os.getpid() == driver_pid:
+        return
+    _WATCHING.append(driver_pid)
+    ppid = os.getppid()
+
+    def watch() -> None:
+        while True:
+            time.sleep(0.5)
+            try:
+                os.kill(driver_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except OSError:
+                pass
+            if os.getppid() != ppid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="spmc-parent-watch", daemon=True).start()
+
+
+def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str):
+    """:func:`compute_chunk` in a local worker process that dies with the driver ``driver_pid``."""
+    if driver_pid is not None:
+        _die_with(driver_pid)
+    return compute_chunk(scenario_json, trials, timeseries)
+
+
+def connect_dask(address: str | None, jobs: int, info: dict | None = None):
+    """A Dask client (and its LocalCluster when ``address`` is None); ``info`` gets address and workers."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover - depends on the optional extra
+        raise RunError("--backend dask needs the optional extra: pip install 'stereopose_mc[dask]'") from None
+    cluster = None
+    if address:
+        try:
+            client = Client(address, timeout=DASK_CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise RunError(f"--scheduler {address}: cannot connect to a Dask scheduler there within "
+                           f"{DASK_CONNECT_TIMEOUT_S} s ({type(exc).__name__}: {exc})") from None  # fmt: skip
+    else:
+        cluster = LocalCluster(n_workers=max(1, jobs), threads_per_worker=1, processes=True,
+                               dashboard_address=None)  # fmt: skip
+        client = Client(cluster)
+    if info is not None:
+        info.update(address=client.scheduler.address, workers=len(client.scheduler_info().get("workers", {})))
+    return client, cluster
+
+
+DASK_CONNECT_TIMEOUT_S = 10
+
+
+def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
+             info: dict | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
+    """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest)."""
     if opts.jobs == 1 and opts.backend != "dask":
         for c in chunks:
             yield compute_chunk(scenario_json, c, opts.timeseries)
         return
     from joblib import Parallel, delayed, parallel_config
 
-    calls = (delayed(compute_chunk)(scenario_json, c, opts.timeseries) for c in chunks)
+    driver = None if opts.scheduler else os.getpid()  # remote workers outlive us by design
+    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries) for c in chunks)
     if opts.backend == "dask":
-        try:
-            from dask.distributed import Client, LocalCluster
-        except ImportError:  # pragma: no cover - depends on the optional extra
-            raise RunError("--backend dask needs the optional extra: pip install 'stereopose_mc[dask]'") from None
-        cluster = None
-        if opts.scheduler:
-            client = Client(opts.scheduler)
-        else:
-            cluster = LocalCluster(n_workers=max(1, opts.jobs), threads_per_worker=1, processes=True,
-                                   dashboard_address=None)  # fmt: skip
-            client = Client(cluster)
+        from dask.distributed import KilledWorker
+
+        client, cluster = connect_dask(opts.scheduler, opts.jobs, info)
         try:
             with parallel_config(backend="dask"):
                 yield from Parallel(return_as="generator_unordered")(calls)
+        except (KilledWorker, OSError) as exc:  # a chunk that kept killing workers, a lost scheduler
+            raise RunError(f"Dask backend failed ({type(exc).__name__}: {exc}); the finished chunks are kept: "
+                           "continue with spmc run --resume DIR (see docs/distributed.md)") from None  # fmt: skip
         finally:
             client.close()
             if cluster is not None:
@@ -215,8 +280,13 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions) -> 
         yield from Parallel(return_as="generator_unordered")(calls)
 
 
-def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Merge chunk files into the run's tables and write the percentile tables."""
+def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
+             spec: integrity.RunSpec | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:  # fmt: skip
+    """Merge chunk files into the run's tables and write the percentile tables.
+
+    With ``spec``, the merged tables are checked first (exactly one row per trial x filter,
+    the full time series when it is on): :class:`integrity.IntegrityError`, nothing written.
+    """
     order = {name: i for i, name in enumerate(filter_order)}
 
     def fsort(df):
@@ -226,79 +296,168 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str]) -> t
     files = sorted((out / "chunks").glob("trials-*.parquet"))
     trials = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
     trials = fsort(trials).sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
-    rundir.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"))
+    if spec is not None:
+        integrity.check_trials_table(trials, spec)
+    _write_table(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"))
     files = sorted((out / "chunks").glob("timing-*.parquet"))
     if files:
         df = fsort(pd.concat([pd.read_parquet(f) for f in files], ignore_index=True))
         df = df.sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
-        rundir.write_parquet(out / "timing.parquet", df, _parquet_meta(scn, shash, "timing"))
+        _write_table(out / "timing.parquet", df, _parquet_meta(scn, shash, "timing"))
     # the time series can be large: streamed chunk by chunk (each chunk file is already
     # sorted by trial, filter, step, and the chunks are disjoint trial ranges, so file
     # order by first trial is trial order)
     files = sorted((out / "chunks").glob("timeseries-*.parquet"))
     if files:
-        rundir.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"))
+        n_ts = rundir.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"),
+                                           units=tables.COLUMN_UNITS)
+        if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
+            raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
     pt = tables.percentile_table(trials, list(scn.percentiles))
     rundir.atomic_write_text(out / "percentiles.csv", pt.to_csv(index=False, float_format="%.10g"))
-    rundir.write_parquet(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
+    _write_table(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
     rundir.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
                              + tables.percentiles_markdown(pt))  # fmt: skip
     return trials, pt
 
 
+def run_spec(scn: Scenario, shash: str, timeseries: str, code: str | None = None) -> integrity.RunSpec:
+    """What every chunk of this run must agree with (identity, trials, filters, steps)."""
+    code = integrity.code_version() if code is None else code
+    steps = int(round(scn.time.duration_s / scn.time.dt_s)) + 1
+    return integrity.RunSpec(integrity.run_id(shash, scn.seed, code), scn.trials, [f.label for f in scn.filters],
+                             steps, timeseries)  # fmt: skip
+
+
+def _say(opts: RunOptions, lines: list[str], limit: int = 20) -> None:
+    if opts.say is None:
+        return
+    for line in lines[:limit]:
+        opts.say(line)
+    if len(lines) > limit:
+        opts.say(f"... and {len(lines) - limit} more")
+
+
+def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: str) -> tuple[dict, int]:
+    """Create ``out`` complete (config, manifest, chunks/) or not at all, locked; return manifest and lock."""
+    manifest = rundir.base_manifest(opts.command)
+    manifest.update(
+        kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
+        filters=[f.label for f in scn.filters], state_dim=13 + 3 * len(scn.target.feature_points_m) + 2,
+        timeseries=opts.timeseries, code_version=code, start=rundir.now_iso(),
+        end=None, chunks=[],
+    )  # fmt: skip
+
+    def populate(d: Path) -> None:
+        (d / "chunks").mkdir()
+        rundir.atomic_write_text(d / "config.yaml", yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))
+        rundir.write_json(d / "manifest.json", manifest)
+
+    return manifest, runlock.create_locked(out, opts.overwrite, populate, "spmc run")
+
+
+def _resume_checks(scn: Scenario, out: Path, opts: RunOptions, manifest: dict, shash: str) -> Scenario:
+    """The recorded run's scenario, with a larger ``--trials`` applied; conflicts are errors."""
+    recorded = int(manifest["trials"])
+    if opts.overwrite:
+        raise RunError("--resume and --overwrite conflict: resume keeps the finished chunks")
+    if opts.seed is not None and opts.seed != manifest.get("seed"):
+        raise RunError(f"{out}: this run was started with seed {manifest.get('seed')}; --seed {opts.seed} "
+                       "would need a new run (drop --seed, or start one with --out)")  # fmt: skip
+    if manifest.get("scenario_hash") != shash:
+        raise RunError(
+            f"{out}: the scenario differs from the one this run was started with "
+            f"(hash {manifest.get('scenario_hash', '?')[:12]} vs {shash[:12]}); start a new run instead"
+        )
+    if manifest.get("timeseries") != opts.timeseries:
+        raise RunError(f"{out}: this run was started with --timeseries {manifest.get('timeseries')}")
+    trials = recorded if opts.trials is None else opts.trials
+    if trials < recorded:
+        raise RunError(f"{out}: this run has {recorded} trials; --trials {trials} cannot shrink it (start a new run)")
+    if trials > recorded:
+        _say(opts, [f"{out}: extending the run from {recorded} to {trials} trials (--trials); "
+                    f"trials 0-{recorded - 1} are kept"])  # fmt: skip
+        manifest["trials"] = trials
+    return scn.model_copy(update={"trials": trials})
+
+
 def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = None) -> RunResult:
-    """Run (or resume) a Monte Carlo campaign into ``out``."""
+    """Run (or resume) a Monte Carlo campaign into ``out``, holding its lock throughout."""
     t_start = time.perf_counter()
-    if opts.trials is not None or opts.seed is not None:
-        scn = scn.model_copy(update={k: v for k, v in (("trials", opts.trials), ("seed", opts.seed)) if v is not None})
+    if opts.seed is not None and not opts.resume:
+        scn = scn.model_copy(update={"seed": opts.seed})
+    if opts.trials is not None and not opts.resume:
+        scn = scn.model_copy(update={"trials": opts.trials})
     if opts.timeseries not in TIMESERIES_MODES:
         raise RunError(f"--timeseries must be one of {', '.join(TIMESERIES_MODES)}")
     if opts.chunk_size < 1 or opts.jobs < 1:
         raise RunError("--jobs and --chunk-size must be at least 1")
+    too_big = memory_problem(opts.trials or scn.trials, len(scn.filters))
+    if too_big:
+        raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
+    if opts.scheduler and opts.backend != "dask":
+        raise RunError("--scheduler needs --backend dask")
+    if opts.scheduler:  # fail before anything is written
+        connect_dask(opts.scheduler, opts.jobs)[0].close()
     shash = scenario_hash(scn)
-    chunk_dir = out / "chunks"
+    code = integrity.code_version()
     if opts.resume:
-        manifest = _read_manifest(out)
-        if manifest.get("scenario_hash") != shash:
-            raise RunError(
-                f"{out}: the scenario differs from the one this run was started with "
-                f"(hash {manifest.get('scenario_hash', '?')[:12]} vs {shash[:12]}); start a new run instead"
-            )
-        if manifest.get("timeseries") != opts.timeseries:
-            raise RunError(f"{out}: this run was started with --timeseries {manifest.get('timeseries')}")
-        scn = scn.model_copy(update={"trials": int(manifest["trials"])})
+        _read_manifest(out)  # a run directory at all?
+        lock = runlock.acquire(out, "spmc run --resume")
     else:
-        rundir.prepare_dir(out, opts.overwrite)
-        chunk_dir.mkdir()
-        rundir.atomic_write_text(out / "config.yaml", yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))
-        manifest = rundir.base_manifest(opts.command)
-        manifest.update(
-            kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
-            filters=[f.label for f in scn.filters], state_dim=13 + 3 * len(scn.target.feature_points_m) + 2,
-            timeseries=opts.timeseries, start=rundir.now_iso(),
-            end=None, chunks=[],
-        )  # fmt: skip
-        rundir.write_json(out / "manifest.json", manifest)
-    done = done_trials(chunk_dir)
+        manifest, lock = _new_run_dir(scn, out, opts, shash, code)
+    try:
+        if opts.resume:
+            manifest = _read_manifest(out)  # as the last writer left it, now that we hold the lock
+            recorded = int(manifest["trials"])
+            scn = _resume_checks(scn, out, opts, manifest, shash)
+            manifest["code_version"] = code
+            if scn.trials != recorded:
+                rundir.atomic_write_text(out / "config.yaml",
+                                         yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))  # fmt: skip
+            rundir.write_json(out / "manifest.json", manifest)
+        return _run_locked(scn, out, opts, progress, manifest, run_spec(scn, shash, opts.timeseries, code), t_start)
+    finally:
+        runlock.release(lock)
+
+
+def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None, manifest: dict,
+                spec: integrity.RunSpec, t_start: float) -> RunResult:  # fmt: skip
+    chunk_dir = out / "chunks"
+    shash = manifest["scenario_hash"]
+    integrity.remove_stale_temporaries(chunk_dir)
+    v = integrity.verify_chunks(chunk_dir, spec)
+    if v.rejected:
+        dest = integrity.set_aside(chunk_dir, v.rejected)
+        _say(opts, [f"rejected {p}; its trials are recomputed" for p in v.problems]
+             + [f"(rejected files moved to {dest})"])  # fmt: skip
+    done = np.asarray(v.done_trials(), dtype=np.int64)
     todo = np.setdiff1d(np.arange(scn.trials), done)
     chunks = plan_chunks(todo, opts.chunk_size)
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
-    n_done, n_div = int(done.size), 0
+    n_done, n_div = int(done.size), {f: v.diverged().get(f, 0) for f in spec.filters}
     if progress:
-        progress(n_done, scn.trials, n_div)
-    for co in _iterate(scenario_json, chunks, opts):
-        _write_chunk(chunk_dir, co, meta)
+        progress(n_done, scn.trials, dict(n_div))
+    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None}
+    for co in _iterate(scenario_json, chunks, opts, manifest["backend"]):
+        _write_chunk(chunk_dir, co, meta, spec)
         n_done += co.trials.size
-        n_div += co.diverged
+        for f, d in co.diverged_by.items():
+            n_div[f] = n_div.get(f, 0) + d
         manifest.setdefault("chunks", []).append(
             {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
              "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
         )
         rundir.write_json(out / "manifest.json", manifest)
         if progress:
-            progress(n_done, scn.trials, n_div)
-    trials, pt = finalize(out, scn, shash, [f.label for f in scn.filters])
+            progress(n_done, scn.trials, dict(n_div))
+    v = integrity.verify_chunks(chunk_dir, spec)
+    try:
+        integrity.check_complete(v, spec)
+        trials, pt = finalize(out, scn, shash, spec.filters, spec)
+    except integrity.IntegrityError as exc:
+        raise RunError("refusing to merge (nothing published): " + "; ".join(exc.problems)) from None
     manifest["end"] = rundir.now_iso()
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
     rundir.write_json(out / "manifest.json", manifest)
@@ -316,6 +475,11 @@ def _read_manifest(out: Path) -> dict:
     if m.get("kind") != "run":
         raise RunError(f"{out}: not a run directory made by 'spmc run'")
     return m
+
+
+def recorded_timeseries(out: Path) -> str:
+    """The ``--timeseries`` mode a run was started with."""
+    return str(_read_manifest(out).get("timeseries", "full"))
 
 
 def load_run_scenario(out: Path) -> Scenario:

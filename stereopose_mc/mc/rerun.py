@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..outputs import rundir
+from ..outputs import rundir, tables
 from . import engine
 from .trial import ERROR_NAMES
 
@@ -30,6 +30,8 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         scn = engine.load_run_scenario(run_dir)
     except (engine.RunError, ValueError) as exc:
         raise RerunError(str(exc)) from None
+    if out is not None and Path(out).is_dir():
+        raise RerunError(f"--out {out} is a directory: give a file name, e.g. {Path(out) / f't{trial}.parquet'}")
     if trial >= scn.trials:
         raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
     co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full")
@@ -52,7 +54,11 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         lines.append("(trial not in trials.parquet yet: nothing to compare)")
     if out is not None:
         out = Path(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        rundir.write_parquet(out, co.timeseries_df, {"stereopose_mc.table": "timeseries", "trial": str(trial)})
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            rundir.write_parquet(out, co.timeseries_df, {"stereopose_mc.table": "timeseries", "trial": str(trial),
+                                 "stereopose_mc.seed": str(scn.seed)}, units=tables.COLUMN_UNITS)  # fmt: skip
+        except OSError as exc:
+            raise RerunError(f"--out {out}: cannot write it ({exc.strerror})") from None
         lines.append(f"time series -> {out}")
     return RerunResult(co.trials_df, identical, lines)

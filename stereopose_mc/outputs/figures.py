@@ -28,6 +28,7 @@ import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -103,6 +104,35 @@ def _bins(v: np.ndarray) -> int:
 
 # --------------------------------------------------------------------------- histograms
 
+CLIP_IQR = 5.0  # histogram axes end at the quartiles -/+ 5 IQR (beyond Tukey's far-out fences)
+
+
+def robust_range(v: np.ndarray) -> tuple[float, float]:
+    """The x range that a few wild trials cannot stretch: [q25 - 5 IQR, q75 + 5 IQR] within [min, max]."""
+    q25, q75 = np.percentile(v, [25, 75])
+    iqr = q75 - q25
+    if not iqr > 0:
+        return float(v.min()), float(v.max())
+    return max(float(v.min()), q25 - CLIP_IQR * iqr), min(float(v.max()), q75 + CLIP_IQR * iqr)
+
+
+def clipped_hist(ax, v: np.ndarray, color: str) -> np.ndarray:
+    """Histogram of ``v`` over its :func:`robust_range`; the trials beyond are counted in a note on the panel."""
+    lo, hi = robust_range(v)
+    inside = (v >= lo) & (v <= hi)
+    ax.hist(v[inside], bins=_bins(v[inside]), color=color, edgecolor="white")
+    out = v[~inside]
+    if out.size:
+        parts = []
+        if np.any(out < lo):
+            parts.append(f"{int(np.sum(out < lo))} below (min {out.min():.3g})")
+        if np.any(out > hi):
+            parts.append(f"{int(np.sum(out > hi))} above (max {out.max():.3g})")
+        ax.text(0.98, 0.80, "clipped: " + ", ".join(parts) + " not shown", ha="right", va="top",
+                transform=ax.transAxes, fontsize=7, color="#b22222",
+                bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "#b22222", "lw": 0.5})  # fmt: skip
+    return out
+
 
 def error_histograms(trials: pd.DataFrame, label: str) -> Figure:
     """Histograms of the six per-trial window-mean errors of one filter (converged trials)."""
@@ -114,7 +144,7 @@ def error_histograms(trials: pd.DataFrame, label: str) -> Figure:
         v = g[name].to_numpy(float)[ok]
         v = v[np.isfinite(v)]
         if v.size:
-            ax.hist(v, bins=_bins(v), color="#4c72b0", edgecolor="white")
+            clipped_hist(ax, v, "#4c72b0")
             ax.axvline(np.median(v), color="k", ls="--", lw=1, label=f"median {np.median(v):.3g}")
             ax.legend(fontsize=8)
         else:
@@ -152,7 +182,7 @@ def paired_difference_figure(diff: pd.DataFrame, n_common: int, ekf: str, iekf: 
     for ax, name in zip(axes, ERROR_NAMES):
         v = diff[name].to_numpy(float)
         if v.size:
-            ax.hist(v, bins=_bins(v), color="#dd8452", edgecolor="white")
+            clipped_hist(ax, v, "#dd8452")
             ax.axvline(0.0, color="k", lw=1)
             ax.set_title(f"{iekf} lower in {int(np.sum(v > 0))} of {v.size}", fontsize=9)
         else:
@@ -274,12 +304,27 @@ def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> 
     ax.plot(c.t, c.mean, color="#238b45", lw=1.5, label=f"mean {what} over trials")
     ax.plot(c.t[ok], c.dof[ok], color="k", ls=":", lw=1, label=f"expected ({dof_text})")
     ax.set_yscale("log")
+    _clip_y(ax, c)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(what)
     m = int(np.max(c.M)) if c.M.size else 0
     ax.set_title(f"{label}: mean {what} over up to {m} trials; inside the band at {inside} of {steps} steps")
     ax.legend(fontsize=8)
     return fig
+
+
+def _clip_y(ax, c: Consistency, decades: float = 2.0) -> None:
+    """Keep the band readable: the y axis ends ``decades`` above / below the band; a mean beyond is noted."""
+    band = np.concatenate([c.lo[np.isfinite(c.lo)], c.hi[np.isfinite(c.hi)]])
+    m = c.mean[np.isfinite(c.mean) & (c.mean > 0)]
+    if not band.size or not m.size:
+        return
+    top, bottom = band.max() * 10**decades, band.min() / 10**decades
+    if m.max() > top or m.min() < bottom:
+        ax.set_ylim(max(bottom, m.min() / 2), min(top, m.max() * 2))
+        n_out = int(np.sum((m > top) | (m < bottom)))
+        ax.text(0.99, 0.02, f"clipped: the mean is beyond the axis at {n_out} steps (max {m.max():.3g})",
+                ha="right", va="bottom", transform=ax.transAxes, fontsize=7, color="#b22222")  # fmt: skip
 
 
 # --------------------------------------------------------------------------- compute time
@@ -342,12 +387,18 @@ def build_figures(
     state_dim: int | None,
     window_start: float | None,
     percentiles: list[float],
+    progress: Callable[[str], None] | None = None,
 ) -> FigureSet:
-    """Write every figure and table that the inputs allow into ``out_dir``; note what is skipped."""
+    """Write every figure and table that the inputs allow into ``out_dir``; note what is skipped.
+
+    ``progress(name)`` is called as each figure is written (the report's progress line).
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     fs = FigureSet()
 
     def add(fig: Figure, key: str, title: str, caption: str) -> None:
+        if progress is not None:
+            progress(key)
         png, svg = save_figure(fig, out_dir, key)
         fs.figures.append(FigureFile(key, title, caption, png, svg))
 

@@ -19,7 +19,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -30,6 +30,7 @@ from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_cas
 from ..mc.trial import ERROR_NAMES
 from . import figures as figs
 from . import rundir, tables
+from .summary import summarize
 from .tables import ERROR_LABELS
 
 REQUIRED_FILES = ("config.yaml", "manifest.json", "trials.parquet")
@@ -208,6 +209,9 @@ th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}th{background:#f
 td.l,th.l{text-align:left}.side{display:flex;flex-wrap:wrap;gap:2em;align-items:flex-start}
 .note{color:#555;font-size:.9em}figure{margin:1em 0 2em 0}figure img{max-width:100%;border:1px solid #ddd}
 figcaption{font-size:.9em;color:#444}code{background:#f4f4f4;padding:0 .2em}
+.ok{color:#1b7837;font-weight:600}.bad{color:#b2182b;font-weight:600}.verdicts li{margin:.3em 0}
+.verdicts .ok,.verdicts .bad{font-weight:normal}
+details{margin:.5em 0}summary{cursor:pointer;font-weight:600}
 """
 
 
@@ -402,6 +406,31 @@ def _figure_html(f: figs.FigureFile, root: Path) -> str:
             f"<code>{esc(svg_rel)}</code>.</figcaption></figure>")  # fmt: skip
 
 
+def results_summary_html(data: RunData, pt: pd.DataFrame) -> str:
+    """The report's first section: per filter, trials, converged, divergence reasons, median errors
+    and the consistency verdict in words (``outputs.summary``)."""
+    sums = summarize(data.trials, data.timeseries, data.filters, data.filter_types, data.state_dim,
+                     data.window_start, reason_category)  # fmt: skip
+    heads = ["filter", "type", "trials", "converged", "diverged (reasons)",
+             *[f"median {ERROR_LABELS[n]}" for n in ERROR_NAMES], "consistency"]  # fmt: skip
+    rows, verdicts = [], []
+    p50 = pt if 50 in set(pt["percentile"]) else tables.percentile_table(data.trials, [50])
+    for s in sums:
+        med = p50[(p50["filter"] == s.label) & (p50["population"] == "converged") & (p50["percentile"] == 50)]
+        vals = [med[n].iloc[0] if len(med) else np.nan for n in ERROR_NAMES]
+        word = {True: "consistent", False: "NOT consistent", None: "unknown"}[s.consistent]
+        cls = {True: "ok", False: "bad", None: "note"}[s.consistent]
+        rows.append([esc(s.label), esc(s.kind), str(s.trials), str(s.converged), esc(s.divergence_words()),
+                     *_cells(vals), f'<span class="{cls}">{esc(word)}</span>'])  # fmt: skip
+        verdicts.append(f'<li><b>{esc(s.label)}</b>: <span class="{cls}">{esc(s.verdict())}</span>.</li>')
+    window = f"t \u2265 {fmt_value(data.window_start)} s"
+    return ("<h2>Results</h2>" + html_table(heads, rows, left=2, caption=f"median of the per-trial mean errors over "
+            f"{window}, converged trials") + "<ul class=\"verdicts\">" + "".join(verdicts) + "</ul>"
+            + '<p class="note">Consistency: the average over the converged trials of each trial\'s window-mean NEES '
+            "(and, with a time series, of its NIS per measurement dimension) against the 95 % chi-square band of a "
+            "consistent filter; see docs/outputs.md.</p>")  # fmt: skip
+
+
 def render_report(data: RunData, fs: figs.FigureSet) -> str:
     """The report's HTML text."""
     pt = tables.percentile_table(data.trials, data.percentiles)
@@ -415,10 +444,7 @@ def render_report(data: RunData, fs: figs.FigureSet) -> str:
                 f"t &ge; {esc(fmt_value(window))} s; units: rho m, rho_dot m/s, omega deg/s, theta deg, k1 and k2 "
                 "dimensionless.</p>")  # fmt: skip
 
-    body.append("<h2>Scenario</h2>")
-    body.append(html_table(["key", "value"], [[esc(k), esc(v)] for k, v in scenario_rows(data.config)], left=2))
-    body.append("<h2>Run</h2>")
-    body.append(html_table(["key", "value"], [[esc(k), esc(v)] for k, v in run_fact_rows(data)], left=2))
+    body.append(results_summary_html(data, pt))
     body.append("<h2>Percentile tables</h2>")
     for label in data.filters:
         g = pt[pt["filter"] == label]
@@ -473,10 +499,17 @@ def render_report(data: RunData, fs: figs.FigureSet) -> str:
     if notes:
         body.append("<h2>Notes</h2><ul>" + "".join(f"<li>{esc(n)}</li>" for n in notes) + "</ul>")
 
+    body.append("<h2>Scenario and run</h2>")
+    body.append("<details><summary>Resolved scenario (config.yaml)</summary>"
+                + html_table(["key", "value"], [[esc(k), esc(v)] for k, v in scenario_rows(data.config)], left=2)
+                + "</details>")  # fmt: skip
+    body.append("<details><summary>Run facts (manifest.json)</summary>"
+                + html_table(["key", "value"], [[esc(k), esc(v)] for k, v in run_fact_rows(data)], left=2)
+                + "</details>")  # fmt: skip
     return page(f"{data.name}: Monte Carlo report", body)
 
 
-def build_run_report(run_dir: Path) -> Path:
+def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = None) -> Path:
     """Regenerate ``DIR/figures/`` from the run's tables and write ``DIR/report.html``; return its path.
 
     Raises :class:`ReportError` (listing every missing or unreadable file) for a broken
@@ -485,7 +518,8 @@ def build_run_report(run_dir: Path) -> Path:
     data = load_run(Path(run_dir))
     fs = figs.build_figures(data.path / "figures", data.trials, data.timeseries, data.timing,
                             filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
-                            window_start=data.window_start, percentiles=data.percentiles)  # fmt: skip
+                            window_start=data.window_start, percentiles=data.percentiles,
+                            progress=progress)  # fmt: skip
     out = data.path / "report.html"
     rundir.atomic_write_text(out, render_report(data, fs))
     return out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -56,6 +57,20 @@ def base_manifest(command: list[str] | None = None) -> dict[str, Any]:
     }
 
 
+@functools.lru_cache(maxsize=1)
+def umask() -> int:
+    """The process's file-creation mask (read once: setting it back and forth is not thread-safe)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _publish(tmp: str | Path, path: Path) -> None:
+    """Give a temporary file (``mkstemp``: mode 0600) the mode the umask asks for, then rename it."""
+    os.chmod(tmp, 0o666 & ~umask())
+    os.replace(tmp, path)
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and a rename."""
     path = Path(path)
@@ -65,7 +80,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -79,8 +94,23 @@ def write_json(path: Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
 
 
-def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None) -> None:
-    """Write ``df`` as Parquet atomically, with ``metadata`` in the file's key-value metadata.
+def with_units(table: pa.Table, units: dict[str, str] | None) -> pa.Table:
+    """``table`` with each field's unit (``units[name]``) in the field's metadata, key ``unit``."""
+    if not units:
+        return table
+    fields = [f.with_metadata({b"unit": units[f.name].encode()}) if f.name in units else f for f in table.schema]
+    return table.cast(pa.schema(fields, metadata=table.schema.metadata))
+
+
+def field_units(path: Path) -> dict[str, str | None]:
+    """The ``unit`` of each field of a Parquet file (None where it has none)."""
+    return {f.name: (f.metadata or {}).get(b"unit", b"").decode() or None for f in pq.read_schema(path)}
+
+
+def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None,
+                  units: dict[str, str] | None = None) -> None:  # fmt: skip
+    """Write ``df`` as Parquet atomically, with ``metadata`` in the file's key-value metadata
+    and ``units`` in its fields' metadata.
 
     Written without pandas' index and with a fixed writer so that the same table gives
     the same bytes.
@@ -90,20 +120,20 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None 
     meta.pop(b"pandas", None)
     for k, v in (metadata or {}).items():
         meta[k.encode()] = str(v).encode()
-    table = table.replace_schema_metadata(meta)
+    table = with_units(table.replace_schema_metadata(meta), units)
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
         pq.write_table(table, tmp, compression="zstd", write_statistics=False)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
 
 
 def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, str] | None = None,
-                         row_group_rows: int = 262_144) -> int:
+                         row_group_rows: int = 262_144, units: dict[str, str] | None = None) -> int:  # fmt: skip
     """Concatenate Parquet files into one, streaming, with fixed-size row groups.
 
     Only one source file and one row group are in memory at a time, so memory stays
@@ -120,11 +150,10 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
     try:
         for src in sources:
             t = pq.read_table(src)
-            meta = dict(t.schema.metadata or {})
-            meta.pop(b"pandas", None)
-            for k, v in (metadata or {}).items():
-                meta[k.encode()] = str(v).encode()
-            t = t.replace_schema_metadata(meta)
+            # the output's metadata only: the sources' own (e.g. a chunk's trial range) would
+            # make the bytes depend on the chunking
+            t = t.replace_schema_metadata({k.encode(): str(v).encode() for k, v in (metadata or {}).items()})
+            t = with_units(t, units)
             if writer is None:
                 writer = pq.ParquetWriter(tmp, t.schema, compression="zstd", write_statistics=False)
             buffered.append(t)
@@ -140,7 +169,7 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
         if n_buf:
             writer.write_table(pa.concat_tables(buffered), row_group_size=row_group_rows)
         writer.close()
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         if writer is not None:
             writer.close()
@@ -157,8 +186,15 @@ def read_parquet_metadata(path: Path) -> dict[str, str]:
 def prepare_dir(path: Path, overwrite: bool) -> None:
     """Create an empty output directory; refuse to reuse a non-empty one unless ``overwrite``."""
     path = Path(path)
-    if path.exists() and any(path.iterdir()):
-        if not overwrite:
-            raise RunDirError(f"{path} already exists and is not empty; pass --overwrite to replace it")
-        shutil.rmtree(path)
-    path.mkdir(parents=True, exist_ok=True)
+    if path.exists() and not path.is_dir():
+        raise RunDirError(f"{path} exists and is not a directory; choose another --out")
+    try:
+        if path.exists() and any(path.iterdir()):
+            if not overwrite:
+                raise RunDirError(f"{path} already exists and is not empty; pass --overwrite to replace it")
+            shutil.rmtree(path)
+        path.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=path, prefix=".probe-")
+        probe.close()
+    except OSError as exc:
+        raise RunDirError(f"{path}: cannot create or write it ({exc.strerror})") from None

@@ -22,6 +22,17 @@ TRUTH_COLUMNS = [
 ]  # fmt: skip
 
 
+def sim_units(columns) -> dict[str, str]:
+    """Units of the truth and measurement columns (image channels: normalized image units, focal length 1)."""
+    fixed = {"t": "s", "nu": "rad", "feature": "-", "k1": "-", "k2": "-", "d": "1"}
+    prefix = (("rho_dot_", "m/s"), ("rho_", "m"), ("omega_", "rad/s"), ("alpha_", "rad/s^2"), ("q", "-"),
+              ("du_", "1/s"), ("dv_", "1/s"), ("u_", "1"), ("v_", "1"))  # fmt: skip
+    out = {}
+    for c in columns:
+        out[c] = fixed.get(c) or next((u for p, u in prefix if c.startswith(p)), "-")
+    return out
+
+
 def truth_frame(truth: Truth) -> pd.DataFrame:
     x = truth.x
     cols = {"t": truth.t, "nu": truth.nu}
@@ -81,8 +92,9 @@ def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None
     tf = truth_frame(truth)
     for j, a in enumerate("xyz"):
         tf[f"alpha_meas_{a}"] = m.alpha[:, j]
-    write_parquet(out / "truth.parquet", tf, md)
-    write_parquet(out / "measurements.parquet", measurement_frame(truth.t, m, setup.disparity), md)
+    write_parquet(out / "truth.parquet", tf, md, units=sim_units(tf.columns))
+    mf = measurement_frame(truth.t, m, setup.disparity)
+    write_parquet(out / "measurements.parquet", mf, md, units=sim_units(mf.columns))
     atomic_write_text(out / "config.yaml", yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
     manifest = base_manifest(command)
     manifest.update(kind="simulate", scenario=scenario.name, seed=root, noise=noise, start=start, end=now_iso())

@@ -16,6 +16,15 @@ from ..mc.trial import ERROR_NAMES, ChunkResult
 ERROR_UNITS = {"e_rho": "m", "e_rho_dot": "m/s", "e_omega": "deg/s", "e_theta": "deg", "e_k1": "-", "e_k2": "-"}
 ERROR_LABELS = {"e_rho": "rho [m]", "e_rho_dot": "rho_dot [m/s]", "e_omega": "omega [deg/s]",
                 "e_theta": "theta [deg]", "e_k1": "k1 [-]", "e_k2": "k2 [-]"}  # fmt: skip
+# The unit of every column of the run's tables, written into each Parquet field's metadata
+# (key "unit") and listed in docs/outputs.md; "-" = dimensionless, a count, an index, a label or a flag.
+COLUMN_UNITS = {
+    "trial": "-", "filter": "-", "seed": "-", **ERROR_UNITS, **{f"final_{n}": u for n, u in ERROR_UNITS.items()},
+    "diverged": "-", "diverged_step": "-", "diverged_reason": "-", "iterations_mean": "-",
+    "iekf_unconverged_steps": "-", "nees_mean": "-", "nis_mean": "-",
+    "step": "-", "t": "s", "nees": "-", "nis": "-", "nis_dof": "-", "iterations": "-", "converged": "-",
+    "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
+}  # fmt: skip
 TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged"]
 
 
@@ -102,6 +111,11 @@ def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None 
     return pd.concat(frames, ignore_index=True)
 
 
+def pct_value(p: float, percentiles: list[float]) -> int | float:
+    """Percentiles are integers (50, 70, ...) unless the scenario asks for a fractional one (99.9)."""
+    return int(p) if all(float(q).is_integer() for q in percentiles) else float(p)
+
+
 def percentile_table(trials: pd.DataFrame, percentiles: list[float]) -> pd.DataFrame:
     """Percentiles of the per-trial window means, per filter and population."""
     rows = []
@@ -118,7 +132,7 @@ def percentile_table(trials: pd.DataFrame, percentiles: list[float]) -> pd.DataF
                     v = v[~div & np.isfinite(v)]
                 vals[name] = v
             for p in percentiles:
-                row = {"filter": label, "population": pop, "percentile": float(p)}
+                row = {"filter": label, "population": pop, "percentile": pct_value(p, percentiles)}
                 for name in ERROR_NAMES:
                     v = vals[name]
                     row[name] = float(np.percentile(v, p, method="inverted_cdf")) if v.size else np.nan

@@ -626,6 +626,8 @@ def run_dynamics(
     The directory is checked before any computation, and created only when the results are ready.
     """
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise rundir.RunDirError(f"{out} exists and is not a directory; choose another --out")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise rundir.RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
     r = run_studies(scn, options)

@@ -331,7 +331,8 @@ def filter_state_lines(r: dict[str, Any]) -> list[str]:
     rms = r["crlb_rms"]
     out.append(
         f"  RMS error bounds: rho {rms['rho_m']:.3g} m, rho_dot {rms['rho_dot_mps']:.3g} m/s, "
-        f"omega {rms['omega_degps']:.3g} deg/s, theta {rms['theta_deg']:.3g} deg, k1 {rms['k1']:.3g}, k2 {rms['k2']:.3g}"
+        f"omega {rms['omega_degps']:.3g} deg/s, theta {rms['theta_deg']:.3g} deg, "
+        f"k1 {rms['k1']:.3g}, k2 {rms['k2']:.3g}"
     )
     km = r["k_sigma_measurements_only"]
     out.append(f"  k from the measurements alone (no prior on k): k1 {km['k1']:.3g}, k2 {km['k2']:.3g}")

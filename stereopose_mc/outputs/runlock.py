@@ -1,0 +1,119 @@
+"""One writer per run directory: an ``fcntl`` advisory lock on ``<run>/.lock``.
+
+The lock is held for the whole run, resume, report or overwrite and released by the
+kernel when the holder exits or dies (even by SIGKILL), so a stale lock file never
+blocks anyone. The file holds the holder's pid, host and start time, which a refused
+second writer names in its error.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import platform
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator
+
+from .rundir import RunDirError, now_iso, umask
+
+LOCK_NAME = ".lock"
+
+
+def _holder(fd: int) -> str:
+    try:
+        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+    except (OSError, ValueError):
+        info = {}
+    if not info:
+        return "another process"
+    return f"pid {info.get('pid', '?')} on {info.get('host', '?')}, started {info.get('start', '?')}"
+
+
+def acquire(run_dir: Path, what: str) -> int:
+    """Lock ``run_dir`` (which must exist) and return the lock's file descriptor.
+
+    Raises :class:`RunDirError` naming the holder when another process has it.
+    """
+    path = Path(run_dir) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise RunDirError(f"{run_dir}: cannot create its lock file ({exc.strerror})") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = _holder(fd)
+        os.close(fd)
+        raise RunDirError(f"{run_dir} is in use by {holder}; wait for it to finish (or stop it) and retry") from None
+    info = {"pid": os.getpid(), "host": platform.node(), "start": now_iso(), "what": what}
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps(info).encode(), 0)
+    return fd
+
+
+def release(fd: int | None) -> None:
+    if fd is not None:
+        os.close(fd)  # closing the descriptor releases the flock
+
+
+@contextmanager
+def locked(run_dir: Path, what: str) -> Iterator[int]:
+    """``with locked(dir, "report"):`` hold the run directory's lock for the block."""
+    fd = acquire(run_dir, what)
+    try:
+        yield fd
+    finally:
+        release(fd)
+
+
+def create_locked(out: Path, overwrite: bool, populate: Callable[[Path], None], what: str) -> int:
+    """Create run directory ``out`` complete or not at all, and return its lock.
+
+    ``populate(d)`` writes the first files into a hidden staging directory next to
+    ``out``, which is locked and then renamed to ``out`` in one step: a crash leaves either
+    no ``out`` or a complete one. ``--overwrite`` takes the old directory's lock first (a
+    busy run is never replaced) and swaps the old directory out by renames.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunDirError(f"{out} exists and is not a directory; choose another --out")
+    old_fd = None
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
+        old_fd = acquire(out, what)
+    stage = trash = None
+    try:
+        try:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.new-"))
+            os.chmod(stage, 0o777 & ~umask())
+        except OSError as exc:
+            raise RunDirError(f"{out}: cannot create it in {out.parent} ({exc.strerror})") from None
+        fd = acquire(stage, what)
+        try:
+            populate(stage)
+            if old_fd is not None:
+                trash = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
+                os.rename(out, trash / "run")
+            os.rename(stage, out)  # onto a missing or empty directory
+        except OSError as exc:
+            release(fd)
+            if trash is not None and (trash / "run").exists() and not out.exists():
+                os.rename(trash / "run", out)  # put the old run back
+            raise RunDirError(f"{out}: cannot write the run directory ({exc.strerror})") from None
+        except BaseException:
+            release(fd)
+            raise
+        stage = None
+        return fd
+    finally:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        if trash is not None:
+            shutil.rmtree(trash, ignore_errors=True)
+        release(old_fd)
