@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 from ..core import state as st
 from ..core.orbit import Orbit
+from .sensor import SensorSetup, sensor_of, truth_sigmas
 from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
 DEG = np.pi / 180.0
@@ -43,6 +44,7 @@ class Setup:
     alpha_td_r: float = 0.05  # rad/s^3
     alpha_td_h0: float = 1.5  # s
     alpha_sigma_floor: float = 1e-9  # rad/s^2
+    sensor: SensorSetup = SensorSetup()  # pixel camera, tracker faults (config/sensor.py)
 
     @property
     def n_points(self) -> int:
@@ -89,13 +91,15 @@ def setup_of(s: Scenario) -> Setup:
         focal=s.camera.focal_length,
         disparity=m.disparity,
         pseudo=m.inertia_pseudo_measurement.enabled,
-        sigma_image=m.image_sigma,
-        sigma_flow=m.flow_sigma,
-        sigma_disparity=m.disparity_sigma_value,
+        sigma_image=truth_sigmas(s)[0],
+        sigma_flow=truth_sigmas(s)[1],
+        sigma_disparity=m.disparity_sigma_value if m.image_sigma_px is None or m.disparity_sigma is not None
+        else float(np.sqrt(2.0)) * truth_sigmas(s)[0],
         sigma_alpha=m.inertia_pseudo_measurement.angular_acceleration_sigma_radps2,
         P0_diag=block_diag(s.initial_covariance, len(pts)),
         truth_rtol=s.time.truth_rtol,
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
+        sensor=sensor_of(s),
     )
 
 
@@ -131,6 +135,7 @@ class FilterSetup:
     max_iterations: int = 1
     step_control: str = "none"
     stopping: str = "mahalanobis"
+    gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
 
 
 def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
@@ -153,5 +158,6 @@ def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
         transition=f.transition,
         taylor_order=f.taylor_order,
         substeps=f.integration_substeps,
+        gate_probability=None if f.gating is None else f.gating.probability,
         **extra,
     )

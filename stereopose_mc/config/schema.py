@@ -93,6 +93,31 @@ class InitialStateConfig(_Model):
 class CameraConfig(_Model):
     baseline_m: Pos = 1.0
     focal_length: Pos = 1.0
+    resolution_px: Annotated[list[Annotated[int, Field(gt=0)]], Field(min_length=2, max_length=2)] | None = Field(
+        default=None,
+        description="[W, H] of each camera's image in pixels; sets the pixel camera (docs/realism.md): features "
+        "outside either image are not measured, and noise may be given in pixels",
+    )
+    fov_deg: Annotated[float, Field(gt=0, lt=180)] | None = Field(
+        default=None, description="horizontal field of view (with resolution_px; or focal_length_px)"
+    )
+    focal_length_px: Pos | None = Field(default=None, description="focal length in pixels (with resolution_px)")
+    principal_point_px: Annotated[list[float], Field(min_length=2, max_length=2)] | None = Field(
+        default=None, description="[c_x, c_y] in pixels; default the image centre [W/2, H/2]"
+    )
+
+    @model_validator(mode="after")
+    def _pixel_camera(self):
+        px = (self.fov_deg, self.focal_length_px, self.principal_point_px)
+        if self.resolution_px is None:
+            if any(v is not None for v in px):
+                raise ValueError("fov_deg, focal_length_px and principal_point_px need resolution_px")
+            return self
+        if (self.fov_deg is None) == (self.focal_length_px is None):
+            raise ValueError("with resolution_px give exactly one of fov_deg or focal_length_px")
+        if self.focal_length != 1.0:
+            raise ValueError("focal_length (normalized-image scale) must stay 1 with a pixel camera (resolution_px)")
+        return self
 
 
 class PseudoMeasurementConfig(_Model):
@@ -143,6 +168,17 @@ class PseudoMeasurementConfig(_Model):
         return self
 
 
+class OutlierConfig(_Model):
+    """Wrong correspondences of the feature tracker (docs/realism.md)."""
+
+    probability: Annotated[float, Field(ge=0, le=1)] = Field(description="per feature and step")
+    model: Literal["uniform_image", "swapped_feature"] = Field(
+        default="uniform_image",
+        description="uniform_image: a spurious static point anywhere in the image (both cameras, same row); "
+        "swapped_feature: the measurement of another feature of the target",
+    )
+
+
 class MeasurementsConfig(_Model):
     image_sigma: NonNeg = 1e-5
     flow_sigma: NonNeg = 1e-5
@@ -151,6 +187,16 @@ class MeasurementsConfig(_Model):
         default=None, description="noise of the disparity channel; default sqrt(2) image_sigma"
     )
     inertia_pseudo_measurement: PseudoMeasurementConfig = PseudoMeasurementConfig()
+    image_sigma_px: NonNeg | None = Field(
+        default=None, description="image noise in pixels (needs camera.resolution_px); replaces image_sigma"
+    )
+    flow_sigma_pxps: NonNeg | None = Field(
+        default=None, description="image-velocity noise in px/s (needs camera.resolution_px); replaces flow_sigma"
+    )
+    dropout_probability: Annotated[float, Field(ge=0, lt=1)] = Field(
+        default=0.0, description="probability that the tracker loses a feature at a step (per feature and step)"
+    )
+    outliers: OutlierConfig | None = None
 
     @property
     def disparity_sigma_value(self) -> float:
@@ -188,8 +234,17 @@ class ProcessNoiseConfig(_Model):
     k: NonNeg = 1e-10
 
 
+class GatingConfig(_Model):
+    """Per-feature chi-square gate on the innovation before the update (docs/filters.md)."""
+
+    probability: Annotated[float, Field(gt=0, lt=1)] = Field(
+        default=0.999, description="probability that a correct feature passes the gate"
+    )
+
+
 class _FilterBase(_Model):
     name: str | None = Field(default=None, description="label in outputs; default the type")
+    gating: GatingConfig | None = None
     measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
     transition: Literal["expm", "taylor"] = "taylor"
@@ -249,6 +304,13 @@ class Scenario(_Model):
     )
     percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
     divergence: DivergenceConfig = DivergenceConfig()
+
+    @model_validator(mode="after")
+    def _pixel_noise_needs_pixels(self):
+        m = self.measurements
+        if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
+            raise ValueError("measurements.image_sigma_px / flow_sigma_pxps need camera.resolution_px")
+        return self
 
     @field_validator("filters")
     @classmethod

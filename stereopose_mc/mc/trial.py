@@ -30,6 +30,7 @@ from ..core import filters as kf
 from ..filters import relnav
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
+from ..sim.faults import Faults, apply_faults
 from ..sim.truth import Truth
 
 Array = NDArray[np.float64]
@@ -108,6 +109,8 @@ class FilterRun:
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
     P_final: Array | None = None  # (B, n, n)
+    dof: Array | None = None  # (B, K+1) per-trial measurement dimension (features dropped or gated out removed)
+    gated: Array | None = None  # (B, K+1) int: features rejected by the filter's gate at each step
 
 
 def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
@@ -133,12 +136,14 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
 
 
 def run_filter(
-    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds
+    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
+    kept: Array | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
-    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``. Updates at
-    ``t_k, k >= 1``; step 0 holds the initial estimate's errors.
+    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
+    the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
+    holds the initial estimate's errors.
     """
     B, n = x0_hat.shape
     K = setup.steps
@@ -148,6 +153,8 @@ def run_filter(
     # measurement dimension per step: visible features x channels (+ 3 pseudo rows)
     nis_dof = visible.sum(axis=1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
     nis_dof[0] = 0
+    dof = np.broadcast_to(nis_dof, (B, K + 1)).copy()
+    gated = np.zeros((B, K + 1), np.int64)
     its = np.zeros((B, K + 1), int)
     conv = np.zeros((B, K + 1), bool)
     div_step = np.full(B, -1)
@@ -180,6 +187,7 @@ def run_filter(
             y=relnav.stack_measurement(y_feat[:, k], vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
             t=truth.t[k], alpha_var=pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor)
             if src.differentiated else None,  # None: the filter's sigma_alpha^2, as before
+            feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
@@ -191,6 +199,9 @@ def run_filter(
         v_hist = np.concatenate([v_hist[:, 1:], _omega_var(P)[:, None]], axis=1)
         err[active, k] = e
         its[active, k], conv[active, k] = u.iterations, u.converged
+        if getattr(u, "features_used", None) is not None:
+            dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
+            gated[active, k] = u.rejected
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
@@ -201,7 +212,7 @@ def run_filter(
             w0 = k - bounds.nis_window_steps + 1
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                ratio = np.nanmean(nis[active, w0 : k + 1] / np.maximum(nis_dof[w0 : k + 1], 1), axis=1)
+                ratio = np.nanmean(nis[active, w0 : k + 1] / np.maximum(dof[active, w0 : k + 1], 1), axis=1)
             for j in np.flatnonzero(ratio > bounds.nis_ratio):
                 if not bad[j]:
                     bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
@@ -212,7 +223,8 @@ def run_filter(
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
         active = active[keep]
-    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P)
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P,
+                     dof=dof, gated=gated)
 
 
 def _omega_var(P: Array) -> Array:
@@ -245,8 +257,9 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     def cat(attr, shape, fill):
         return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
 
-    u = kf.Update(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
-                  cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
+    u = relnav.GatedUpdate(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
+                           cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False),
+                           cat("rejected", (), 0), cat("features_used", (), 0))  # fmt: skip
     return u, reasons
 
 
@@ -266,6 +279,7 @@ class ChunkResult:
     trials: Array  # (B,) trial indices
     runs: list[FilterRun]
     runtime_s: float
+    faults: Faults | None = None  # the trials' tracker faults (None: an ideal tracker)
 
 
 def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
@@ -275,10 +289,14 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
     noisy = meas.noisy(setup, exact, draws)
     x0_hat = meas.initial_estimates(setup, draws)
+    y, faults = noisy.y, None
+    if setup.sensor.faults:
+        y, faults = apply_faults(setup.sensor, seed, trials, noisy.y, exact.y, exact.visible)
     runs = []
     for fs in filters:
         t1 = time.perf_counter()
-        r = run_filter(x0_hat, setup, truth, noisy.y, noisy.alpha, exact.visible, fs, bounds)
+        r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
+                       None if faults is None else faults.kept)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
-    return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0)
+    return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

@@ -1,0 +1,92 @@
+"""Sensor realism of a scenario in SI: pixel camera, tracker faults (docs/realism.md).
+
+The filters and the measurement model work in normalized image coordinates (focal
+length 1, ``u = x / y``, ``v = z / y``). A pixel camera (``camera.resolution_px``) maps
+them to pixels by
+
+    col = c_x + f_px u,    row = c_y + f_px v,    f_px = (W / 2) / tan(fov / 2)
+
+(``fov_deg`` horizontal, or ``focal_length_px`` directly; ``principal_point_px``
+defaults to the image centre). So a noise of ``s`` pixels is ``s / f_px`` in normalized
+units, and ``s`` px/s of image velocity is ``s / f_px`` 1/s. A feature is in an image
+when ``0 <= col <= W`` and ``0 <= row <= H``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .schema import Scenario
+
+DEG = math.pi / 180.0
+# half-width (normalized units) of the square image assumed by the ``uniform_image``
+# outlier model when the camera has no resolution: tan(26.6 deg), a 53 deg field of view
+DEFAULT_HALF_WIDTH = 0.5
+
+
+@dataclass(frozen=True)
+class PixelCamera:
+    """A pinhole camera in pixels (the same for both cameras of the rig)."""
+
+    width: int
+    height: int
+    f_px: float
+    cx: float
+    cy: float
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """The image in normalized coordinates: ``(u_min, u_max, v_min, v_max)``."""
+        return (-self.cx / self.f_px, (self.width - self.cx) / self.f_px,
+                -self.cy / self.f_px, (self.height - self.cy) / self.f_px)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SensorSetup:
+    """Everything beyond the thesis's ideal sensor; the defaults are the thesis's."""
+
+    pixels: PixelCamera | None = None
+    dropout: float = 0.0  # per feature and step
+    outlier_probability: float = 0.0
+    outlier_model: str = "uniform_image"
+
+    @property
+    def faults(self) -> bool:
+        return self.dropout > 0.0 or self.outlier_probability > 0.0
+
+    def image_bounds(self) -> tuple[float, float, float, float]:
+        """Normalized image extent used by the ``uniform_image`` outliers."""
+        if self.pixels is not None:
+            return self.pixels.bounds()
+        h = DEFAULT_HALF_WIDTH
+        return (-h, h, -h, h)
+
+
+def pixel_camera_of(s: Scenario) -> PixelCamera | None:
+    c = s.camera
+    if c.resolution_px is None:
+        return None
+    W, H = c.resolution_px
+    f = c.focal_length_px if c.focal_length_px is not None else (W / 2.0) / math.tan(0.5 * c.fov_deg * DEG)
+    cx, cy = c.principal_point_px if c.principal_point_px is not None else (W / 2.0, H / 2.0)
+    return PixelCamera(int(W), int(H), float(f), float(cx), float(cy))
+
+
+def sensor_of(s: Scenario) -> SensorSetup:
+    m = s.measurements
+    o = m.outliers
+    return SensorSetup(
+        pixels=pixel_camera_of(s),
+        dropout=m.dropout_probability,
+        outlier_probability=0.0 if o is None else o.probability,
+        outlier_model="uniform_image" if o is None else o.model,
+    )
+
+
+def truth_sigmas(s: Scenario) -> tuple[float, float]:
+    """The truth's ``(image_sigma, flow_sigma)`` in normalized units (pixels converted)."""
+    m = s.measurements
+    cam = pixel_camera_of(s)
+    si = m.image_sigma if m.image_sigma_px is None else m.image_sigma_px / cam.f_px
+    sf = m.flow_sigma if m.flow_sigma_pxps is None else m.flow_sigma_pxps / cam.f_px
+    return si, sf
