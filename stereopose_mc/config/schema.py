@@ -196,7 +196,11 @@ class MeasurementsConfig(_Model):
     dropout_probability: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that the tracker loses a feature at a step (per feature and step)"
     )
-    outliers: OutlierConfig | None = None
+    outliers: OutlierConfig | None = Field(
+        default=None,
+        description="tracker outliers `{probability: p, model: uniform_image | swapped_feature}` (per feature and "
+        "step; model default uniform_image); see docs/realism.md",
+    )
 
     @property
     def disparity_sigma_value(self) -> float:
@@ -244,7 +248,11 @@ class GatingConfig(_Model):
 
 class _FilterBase(_Model):
     name: str | None = Field(default=None, description="label in outputs; default the type")
-    gating: GatingConfig | None = None
+    gating: GatingConfig | None = Field(
+        default=None,
+        description="`{probability: 0.999}`: per-feature chi-square gate on the innovation before the update (the "
+        "IEKF at its first iterate); null = no gate. See docs/filters.md",
+    )
     measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
     transition: Literal["expm", "taylor"] = "taylor"
@@ -285,6 +293,11 @@ class DivergenceConfig(_Model):
     )
     nis_window_steps: Annotated[int, Field(ge=1)] = 10
     nis_start_s: NonNeg = 10.0
+    gated_fraction: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.5,
+        description="a gated filter is lost when, from nis_start_s on, its gate rejected at least this fraction of "
+        "the features it was given at each of nis_window_steps steps",
+    )
 
 
 class Scenario(_Model):

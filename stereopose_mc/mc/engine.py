@@ -76,7 +76,8 @@ def prepare(scn: Scenario) -> Prepared:
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
-    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
+    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s,
+                    d.gated_fraction)
     return Prepared(scn, setup, truth, exact, filters, bounds)
 
 

@@ -10,7 +10,9 @@ Divergence (documented in docs/filters.md): a non-finite state or covariance, a
 covariance that is not positive definite (Cholesky fails), an error beyond the
 scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``), or
 a lost filter: from ``nis_start_s`` on, its NIS averaged over the last
-``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension.
+``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension, or
+(gated filters) its gate rejected at least ``gated_fraction`` of the features it was
+given at every one of those steps (a filter locked out by its own gate).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ class Bounds:
     nis_ratio: float = 100.0
     nis_window_steps: int = 10
     nis_start_s: float = 10.0
+    gated_fraction: float = 0.5
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -217,6 +220,13 @@ def run_filter(
                 if not bad[j]:
                     bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
                               f"{ratio[j]:.3g} x its dimension > {bounds.nis_ratio:g}")  # fmt: skip
+            if fs.gate_probability is not None:
+                lock = _gated_out(gated[active, w0 : k + 1], dof[active, w0 : k + 1], y_feat.shape[-1],
+                                  bounds.gated_fraction)  # fmt: skip
+                for j in np.flatnonzero(lock):
+                    if not bad[j]:
+                        bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
+                                  f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
         keep = np.ones(active.size, bool)
         for j, i in enumerate(active):
             if bad[j]:
@@ -225,6 +235,13 @@ def run_filter(
         active = active[keep]
     return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P,
                      dof=dof, gated=gated)
+
+
+def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:
+    """Per trial: at every step of the window, ``gated >= fraction`` of the features given (used + gated)."""
+    used = (dof - dof % channels) // channels  # the pseudo rows (3 < channels) are the remainder
+    offered = used + gated
+    return np.all((offered > 0) & (gated >= fraction * offered), axis=-1)
 
 
 def _omega_var(P: Array) -> Array:

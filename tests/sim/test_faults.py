@@ -112,3 +112,14 @@ def test_fault_options_validate():
         prepared({"dropout_probability": 1.5})
     with pytest.raises(Exception, match="model"):
         prepared({"outliers": {"probability": 0.1, "model": "nonsense"}})
+
+
+def test_gate_lockout_rule():
+    from stereopose_mc.mc.trial import _gated_out
+
+    C = 8
+    # trial 0: 5 features offered, 3 gated at every step -> locked out; trial 1: one step with 2 of 5 gated
+    gated = np.array([[3, 3, 3], [3, 2, 3]])
+    dof = (5 - gated) * C + 3
+    np.testing.assert_array_equal(_gated_out(gated, dof, C, 0.5), [True, False])
+    np.testing.assert_array_equal(_gated_out(np.zeros((1, 3), int), np.full((1, 3), 3), C, 0.5), [False])
