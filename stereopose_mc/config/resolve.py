@@ -140,6 +140,9 @@ class FilterSetup:
 
 def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
     r = f.measurement_noise
+    if s.sensor.pixels is not None:  # noise given in pixels -> normalized units (config/sensor.py)
+        px = {"image_sigma": r.image_sigma_px, "flow_sigma": r.flow_sigma_pxps}
+        r = r.model_copy(update={k: v / s.sensor.pixels.f_px for k, v in px.items() if v is not None})
     extra = {}
     if isinstance(f, IEKFConfig):
         extra = dict(

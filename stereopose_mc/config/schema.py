@@ -225,6 +225,10 @@ class FilterMeasurementNoise(_Model):
     flow_sigma: Pos | None = None
     disparity_sigma: Pos | None = None
     angular_acceleration_sigma_radps2: Pos | None = None
+    image_sigma_px: Pos | None = Field(default=None, description="σ for u, v in pixels (pixel camera); replaces image_sigma")
+    flow_sigma_pxps: Pos | None = Field(
+        default=None, description="σ for the image velocities in px/s (pixel camera); replaces flow_sigma"
+    )
 
 
 class ProcessNoiseConfig(_Model):
@@ -323,6 +327,11 @@ class Scenario(_Model):
         m = self.measurements
         if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
             raise ValueError("measurements.image_sigma_px / flow_sigma_pxps need camera.resolution_px")
+        if self.camera.resolution_px is None:
+            for f in self.filters:
+                r = f.measurement_noise
+                if r.image_sigma_px is not None or r.flow_sigma_pxps is not None:
+                    raise ValueError(f"filter {f.label}: measurement_noise in pixels needs camera.resolution_px")
         return self
 
     @field_validator("filters")
