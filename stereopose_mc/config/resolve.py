@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 
 from ..core import state as st
 from ..core.orbit import Orbit
+from ..core.perturbed import Perturbations
 from .sensor import SensorSetup, sensor_of, truth_sigmas
 from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
@@ -45,6 +46,7 @@ class Setup:
     alpha_td_h0: float = 1.5  # s
     alpha_sigma_floor: float = 1e-9  # rad/s^2
     sensor: SensorSetup = SensorSetup()  # pixel camera, tracker faults (config/sensor.py)
+    perturbations: Perturbations | None = None  # perturbed truth (core/perturbed.py); None: Keplerian relative model
 
     @property
     def n_points(self) -> int:
@@ -100,7 +102,22 @@ def setup_of(s: Scenario) -> Setup:
         truth_rtol=s.time.truth_rtol,
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
         sensor=sensor_of(s),
+        perturbations=perturbations_of(s),
     )
+
+
+def perturbations_of(s: Scenario) -> Perturbations | None:
+    """The scenario's ``truth_model`` in SI (None without one)."""
+    tm = s.truth_model
+    if tm is None:
+        return None
+    d = tm.drag
+    extra = {} if d is None else dict(
+        drag=True, ballistic_leader=d.ballistic_coefficient_leader_kgpm2,
+        ballistic_target=d.ballistic_coefficient_target_kgpm2, density_ref=d.reference_density_kgpm3,
+        altitude_ref=d.reference_altitude_km * 1e3, scale_height=d.scale_height_km * 1e3,
+    )  # fmt: skip
+    return Perturbations(j2=tm.j2, gravity_gradient=tm.gravity_gradient_torque, **extra)
 
 
 def _alpha_options(p: PseudoMeasurementConfig, dt: float) -> dict:

@@ -304,6 +304,30 @@ class DivergenceConfig(_Model):
     )
 
 
+class DragConfig(_Model):
+    """Atmospheric drag on both spacecraft (exponential density, co-rotating atmosphere)."""
+
+    density_model: Literal["exponential"] = "exponential"
+    ballistic_coefficient_leader_kgpm2: Pos = Field(description="m / (C_D A) of the leader")
+    ballistic_coefficient_target_kgpm2: Pos = Field(description="m / (C_D A) of the target")
+    reference_density_kgpm3: Pos = Field(default=3.614e-14, description="density at reference_altitude_km")
+    reference_altitude_km: NonNeg = 700.0
+    scale_height_km: Pos = 88.667
+
+
+class TruthModelConfig(_Model):
+    """Model mismatch in the truth: the filters keep the Keplerian, torque-free model (docs/realism.md)."""
+
+    j2: bool = Field(default=False, description="J2 on both spacecraft (propagated in the inertial frame)")
+    drag: DragConfig | None = Field(
+        default=None,
+        description="`{density_model: exponential, ballistic_coefficient_leader_kgpm2, "
+        "ballistic_coefficient_target_kgpm2}` (+ reference_density_kgpm3 = 3.614e-14, reference_altitude_km = 700, "
+        "scale_height_km = 88.667); null = no drag",
+    )
+    gravity_gradient_torque: bool = Field(default=False, description="gravity-gradient torque on the target")
+
+
 class Scenario(_Model):
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
     description: str = ""
@@ -321,6 +345,11 @@ class Scenario(_Model):
     )
     percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
     divergence: DivergenceConfig = DivergenceConfig()
+    truth_model: TruthModelConfig | None = Field(
+        default=None,
+        description="`{j2, drag, gravity_gradient_torque}`: the truth is propagated in the inertial frame with these "
+        "and converted to the leader's LVLH; null = the thesis's Keplerian, torque-free relative model",
+    )
 
     @model_validator(mode="after")
     def _pixel_noise_needs_pixels(self):

@@ -177,6 +177,8 @@ def run_filter(
     for k in range(1, K + 1):
         if active.size == 0:
             break
+        if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
+            setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
             xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
