@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from ..core import state as st
 from ..core.orbit import Orbit
 from ..core.perturbed import Perturbations
-from .sensor import SensorSetup, sensor_of, truth_sigmas
+from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
 from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
 DEG = np.pi / 180.0
@@ -79,7 +79,9 @@ def block_diag(c: CovarianceConfig | ProcessNoiseConfig, n_points: int) -> Array
 
 def setup_of(s: Scenario) -> Setup:
     ti = s.truth_initial_state
-    pts = np.asarray(s.target.feature_points_m, dtype=float)
+    sensor = sensor_of(s)
+    pts = np.asarray(s.target.feature_points_m, dtype=float) if s.target.feature_points is None else (
+        feature_points_of(s, sensor.shape)[0])  # fmt: skip
     k = st.k_from_inertia(np.asarray(s.target.inertia_kgm2, dtype=float))
     x0 = st.assemble(ti.rho_m, ti.rho_dot_mps, np.asarray(ti.omega_degps) * DEG, ti.q, pts, k)
     m = s.measurements
@@ -101,7 +103,7 @@ def setup_of(s: Scenario) -> Setup:
         P0_diag=block_diag(s.initial_covariance, len(pts)),
         truth_rtol=s.time.truth_rtol,
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
-        sensor=sensor_of(s),
+        sensor=sensor,
         perturbations=perturbations_of(s),
     )
 

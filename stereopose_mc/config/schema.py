@@ -19,6 +19,14 @@ NonNeg = Annotated[float, Field(ge=0)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
+def _normalized(v: list[float], what: str) -> list[float]:
+    """``v / |v|``; a zero or non-finite ``v`` is an error naming ``what``."""
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"{what} must be non-zero")
+    return [float(c) / n for c in v]
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True, allow_inf_nan=False)
 
@@ -58,11 +66,58 @@ class LeaderConfig(_Model):
     orbit: OrbitConfig
 
 
+class BoxShape(_Model):
+    type: Literal["box"]
+    size_m: Annotated[list[Pos], Field(min_length=3, max_length=3)] = Field(
+        description="edge lengths along the target's x, y, z (centred at its centre of mass)"
+    )
+
+
+class EllipsoidShape(_Model):
+    type: Literal["ellipsoid"]
+    semi_axes_m: Annotated[list[Pos], Field(min_length=3, max_length=3)]
+
+
+class MeshShape(_Model):
+    type: Literal["mesh"]
+    file: Annotated[str, Field(min_length=1)] = Field(
+        description="closed triangle mesh (OBJ, STL, PLY) in the target frame, metres; a relative path is taken "
+        "from the scenario file's folder"
+    )
+
+
+ShapeConfig = Annotated[Union[BoxShape, EllipsoidShape, MeshShape], Field(discriminator="type")]
+
+
+class SampledFeaturesConfig(_Model):
+    sample_on_surface: Annotated[int, Field(ge=1, le=500)] = Field(
+        description="number of feature points drawn uniformly over the shape's surface (deterministic from the seed)"
+    )
+
+
 class TargetConfig(_Model):
     inertia_kgm2: Annotated[list[Pos], Field(min_length=3, max_length=3)] = Field(
         description="principal moments Ix, Iy, Iz (kg m^2); only their ratios matter torque-free"
     )
-    feature_points_m: Annotated[list[Vec3], Field(min_length=1)]
+    feature_points_m: Annotated[list[Vec3], Field(min_length=1)] | None = Field(
+        default=None, description="feature points P_i in the target frame; or feature_points with a shape"
+    )
+    shape: ShapeConfig | None = Field(
+        default=None,
+        description="the target's body, `{type: box, size_m}`, `{type: ellipsoid, semi_axes_m}` or `{type: mesh, "
+        "file}`: occlusion, illumination, feature sampling (docs/realism.md)",
+    )
+    feature_points: SampledFeaturesConfig | None = Field(
+        default=None, description="`{sample_on_surface: N}` instead of feature_points_m (needs shape)"
+    )
+
+    @model_validator(mode="after")
+    def _points(self):
+        if (self.feature_points_m is None) == (self.feature_points is None):
+            raise ValueError("give exactly one of feature_points_m or feature_points")
+        if self.feature_points is not None and self.shape is None:
+            raise ValueError("feature_points: {sample_on_surface: N} needs target.shape")
+        return self
 
     @field_validator("inertia_kgm2")
     @classmethod
@@ -84,10 +139,7 @@ class InitialStateConfig(_Model):
     @field_validator("q")
     @classmethod
     def _nonzero(cls, v):
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-12:
-            raise ValueError("quaternion must be non-zero")
-        return [float(c) / n for c in v]
+        return _normalized(v, "quaternion")
 
 
 class CameraConfig(_Model):
@@ -179,6 +231,15 @@ class OutlierConfig(_Model):
     )
 
 
+class IlluminationConfig(_Model):
+    sun_direction_lvlh: Vec3 = Field(description="direction toward the Sun in the leader's LVLH frame (normalized)")
+
+    @field_validator("sun_direction_lvlh")
+    @classmethod
+    def _unit(cls, v):
+        return _normalized(v, "sun_direction_lvlh")
+
+
 class MeasurementsConfig(_Model):
     image_sigma: NonNeg = 1e-5
     flow_sigma: NonNeg = 1e-5
@@ -195,6 +256,14 @@ class MeasurementsConfig(_Model):
     )
     dropout_probability: Annotated[float, Field(ge=0, lt=1)] = Field(
         default=0.0, description="probability that the tracker loses a feature at a step (per feature and step)"
+    )
+    occlusion: bool = Field(
+        default=False,
+        description="with target.shape: a feature is measured only when its surface faces both cameras and no part of "
+        "the body is in between (ray test)",
+    )
+    illumination: IlluminationConfig | None = Field(
+        default=None, description="`{sun_direction_lvlh: [x, y, z]}` (needs target.shape): unlit features are not seen"
     )
     outliers: OutlierConfig | None = Field(
         default=None,
@@ -356,6 +425,8 @@ class Scenario(_Model):
         m = self.measurements
         if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
             raise ValueError("measurements.image_sigma_px / flow_sigma_pxps need camera.resolution_px")
+        if self.target.shape is None and (m.occlusion or m.illumination is not None):
+            raise ValueError("measurements.occlusion / illumination need target.shape")
         if self.camera.resolution_px is None:
             for f in self.filters:
                 r = f.measurement_noise

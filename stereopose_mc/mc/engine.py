@@ -38,6 +38,7 @@ from typing import NamedTuple
 
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
+from ..config.sensor import feature_count
 from ..outputs import rundir, tables
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
@@ -275,7 +276,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         manifest = rundir.base_manifest(opts.command)
         manifest.update(
             kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
-            filters=[f.label for f in scn.filters], state_dim=13 + 3 * len(scn.target.feature_points_m) + 2,
+            filters=[f.label for f in scn.filters], state_dim=13 + 3 * feature_count(scn) + 2,
             timeseries=opts.timeseries, start=rundir.now_iso(),
             end=None, chunks=[],
         )  # fmt: skip
