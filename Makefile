@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation venv clean
+.PHONY: test demo bench goldens validation realism venv clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -30,6 +30,9 @@ goldens: $(STAMP)
 
 validation: $(STAMP)
 	$(BIN)/python docs/make_validation.py
+
+realism: $(STAMP)
+	$(BIN)/python docs/make_realism.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

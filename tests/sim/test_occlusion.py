@@ -91,13 +91,12 @@ def test_mesh_shape_from_a_file(tmp_path):
     d["target"] = {"inertia_kgm2": [1.0, 1.2, 1.5], "shape": {"type": "mesh", "file": "meshes/box.obj"},
                    "feature_points": {"sample_on_surface": 10}}  # fmt: skip
     d["measurements"]["occlusion"] = True
-    path = CONFIGS / "_test_mesh_scenario.yaml"
-    try:
-        path.write_text(yaml.safe_dump(d))
-        scn = load_scenario(path)  # the file is found next to the scenario
-    finally:
-        path.unlink()
-    assert scn.target.shape.file == str((CONFIGS / "meshes" / "box.obj").resolve())
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "box.obj").write_bytes((CONFIGS / "meshes" / "box.obj").read_bytes())
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(d))
+    scn = load_scenario(path)  # the mesh is found next to the scenario file
+    assert scn.target.shape.file == str((tmp_path / "meshes" / "box.obj").resolve())
     s = setup_of(scn)
     vis = meas.noise_free(s, simulate_truth(s)).visible
     assert 0 < vis.mean() < 1
