@@ -123,3 +123,16 @@ def test_gate_lockout_rule():
     dof = (5 - gated) * C + 3
     np.testing.assert_array_equal(_gated_out(gated, dof, C, 0.5), [True, False])
     np.testing.assert_array_equal(_gated_out(np.zeros((1, 3), int), np.full((1, 3), 3), C, 0.5), [False])
+
+
+def test_faulty_gated_trials_do_not_depend_on_chunking():
+    gate = [{"type": "iekf", "gating": {"probability": 0.999}}]
+    scn, setup, truth, exact, filters = prepared(
+        {"dropout_probability": 0.05, "outliers": {"probability": 0.05, "model": "swapped_feature"}}, filters=gate)
+    batch = run_chunk(scn.seed, np.arange(4), setup, truth, exact, filters, Bounds())
+    one = run_chunk(scn.seed, np.array([2]), setup, truth, exact, filters, Bounds())
+    rb, r1 = batch.runs[0], one.runs[0]
+    np.testing.assert_array_equal(rb.errors[2], r1.errors[0])
+    np.testing.assert_array_equal(rb.gated[2], r1.gated[0])
+    np.testing.assert_array_equal(rb.dof[2], r1.dof[0])
+    np.testing.assert_array_equal(batch.faults.outlier[2], one.faults.outlier[0])
