@@ -49,7 +49,7 @@ def fault_rng(seed: int, trial: int) -> np.random.Generator:
 class Faults:
     """The faults of a batch of trials."""
 
-    kept: Array  # (B, K+1, N) bool: measured (not dropped); visibility is separate
+    kept: Array  # (B, K+1, N) bool: not dropped by the tracker (True for features out of view)
     outlier: Array  # (B, K+1, N) bool
 
 
@@ -76,7 +76,7 @@ def apply_faults(sensor: SensorSetup, seed: int, trials, y: Array, exact: Array,
     """
     B, K1, N, C = y.shape
     ud, uo, up, us = draw_faults(seed, trials, K1 - 1, N)
-    kept = ud >= sensor.dropout
+    kept = (ud >= sensor.dropout) | ~visible[None]  # a feature out of view is not "dropped" (visibility masks it)
     outlier = kept & (uo < sensor.outlier_probability) & visible[None]
     y0, y = y, y.copy()
     if not outlier.any():
