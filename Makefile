@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation venv clean screenshots
+.PHONY: test demo bench goldens validation realism venv clean screenshots
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -47,6 +47,9 @@ screenshots: $(STAMP)
 
 validation: $(STAMP)
 	$(BIN)/python docs/make_validation.py
+
+realism: $(STAMP)
+	$(BIN)/python docs/make_realism.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -61,4 +61,11 @@ def dynamics(
         fail(str(exc))
     for line in summary_lines(r):
         typer.echo(line)
+    if scn.truth_model is not None:  # perturbed truth: how far it is from the filters' model
+        from ..config.resolve import setup_of
+        from ..studies.truth_mismatch import summary_lines as mismatch_lines, write_mismatch
+
+        df, _ = write_mismatch(setup_of(scn), out)
+        for line in mismatch_lines(df):
+            typer.echo(line)
     typer.echo(f"-> {out}")

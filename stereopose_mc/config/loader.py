@@ -451,8 +451,32 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
                 continue
             problems.append(Problem(file, where.line(loc), path_str(loc), msg))
     problems += [Problem(file, where.line(loc), path_str(loc), msg) for loc, msg in _semantic_checks(data)]
+    if scenario is not None and scenario.target.shape is not None and scenario.target.shape.type == "mesh":
+        scenario, msg = _mesh_file(scenario, file)
+        if msg:
+            loc = ("target", "shape", "file")
+            problems.append(Problem(file, where.line(loc), path_str(loc), msg))
     problems.sort(key=lambda p: p.line or 0)
     return problems, (scenario if not problems else None)
+
+
+def _mesh_file(scenario: Scenario, file: str) -> tuple[Scenario, str]:
+    """The scenario with ``target.shape.file`` made absolute (from the scenario file's folder), or a problem."""
+    from .meshio import MeshFileError, read_mesh
+
+    shape = scenario.target.shape
+    p = Path(shape.file).expanduser()
+    if not p.is_absolute():
+        base = Path(file).parent if not file.startswith("<") else Path.cwd()
+        p = (base / p).resolve()
+    try:
+        m = read_mesh(p)
+    except MeshFileError as exc:
+        return scenario, str(exc)
+    if len(m.faces) < 4:
+        return scenario, f"mesh {p} has {len(m.faces)} triangles; a closed body needs at least 4"
+    target = scenario.target.model_copy(update={"shape": shape.model_copy(update={"file": str(p)})})
+    return scenario.model_copy(update={"target": target}), ""
 
 
 def load_scenario_text(text: str, file: str = "<string>", overrides: dict[str, Any] | None = None) -> Scenario:

@@ -9,6 +9,8 @@ from numpy.typing import NDArray
 
 from ..core import state as st
 from ..core.orbit import Orbit
+from ..core.perturbed import Perturbations
+from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
 from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
 DEG = np.pi / 180.0
@@ -43,6 +45,8 @@ class Setup:
     alpha_td_r: float = 0.05  # rad/s^3
     alpha_td_h0: float = 1.5  # s
     alpha_sigma_floor: float = 1e-9  # rad/s^2
+    sensor: SensorSetup = SensorSetup()  # pixel camera, tracker faults (config/sensor.py)
+    perturbations: Perturbations | None = None  # perturbed truth (core/perturbed.py); None: Keplerian relative model
 
     @property
     def n_points(self) -> int:
@@ -75,7 +79,9 @@ def block_diag(c: CovarianceConfig | ProcessNoiseConfig, n_points: int) -> Array
 
 def setup_of(s: Scenario) -> Setup:
     ti = s.truth_initial_state
-    pts = np.asarray(s.target.feature_points_m, dtype=float)
+    sensor = sensor_of(s)
+    pts = np.asarray(s.target.feature_points_m, dtype=float) if s.target.feature_points is None else (
+        feature_points_of(s, sensor.shape)[0])  # fmt: skip
     k = st.k_from_inertia(np.asarray(s.target.inertia_kgm2, dtype=float))
     x0 = st.assemble(ti.rho_m, ti.rho_dot_mps, np.asarray(ti.omega_degps) * DEG, ti.q, pts, k)
     m = s.measurements
@@ -89,14 +95,31 @@ def setup_of(s: Scenario) -> Setup:
         focal=s.camera.focal_length,
         disparity=m.disparity,
         pseudo=m.inertia_pseudo_measurement.enabled,
-        sigma_image=m.image_sigma,
-        sigma_flow=m.flow_sigma,
-        sigma_disparity=m.disparity_sigma_value,
+        sigma_image=truth_sigmas(s)[0],
+        sigma_flow=truth_sigmas(s)[1],
+        sigma_disparity=m.disparity_sigma_value if m.image_sigma_px is None or m.disparity_sigma is not None
+        else float(np.sqrt(2.0)) * truth_sigmas(s)[0],
         sigma_alpha=m.inertia_pseudo_measurement.angular_acceleration_sigma_radps2,
         P0_diag=block_diag(s.initial_covariance, len(pts)),
         truth_rtol=s.time.truth_rtol,
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
+        sensor=sensor,
+        perturbations=perturbations_of(s),
     )
+
+
+def perturbations_of(s: Scenario) -> Perturbations | None:
+    """The scenario's ``truth_model`` in SI (None without one)."""
+    tm = s.truth_model
+    if tm is None:
+        return None
+    d = tm.drag
+    extra = {} if d is None else dict(
+        drag=True, ballistic_leader=d.ballistic_coefficient_leader_kgpm2,
+        ballistic_target=d.ballistic_coefficient_target_kgpm2, density_ref=d.reference_density_kgpm3,
+        altitude_ref=d.reference_altitude_km * 1e3, scale_height=d.scale_height_km * 1e3,
+    )  # fmt: skip
+    return Perturbations(j2=tm.j2, gravity_gradient=tm.gravity_gradient_torque, **extra)
 
 
 def _alpha_options(p: PseudoMeasurementConfig, dt: float) -> dict:
@@ -131,10 +154,14 @@ class FilterSetup:
     max_iterations: int = 1
     step_control: str = "none"
     stopping: str = "mahalanobis"
+    gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
 
 
 def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
     r = f.measurement_noise
+    if s.sensor.pixels is not None:  # noise given in pixels -> normalized units (config/sensor.py)
+        px = {"image_sigma": r.image_sigma_px, "flow_sigma": r.flow_sigma_pxps}
+        r = r.model_copy(update={k: v / s.sensor.pixels.f_px for k, v in px.items() if v is not None})
     extra = {}
     if isinstance(f, IEKFConfig):
         extra = dict(
@@ -153,5 +180,6 @@ def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
         transition=f.transition,
         taylor_order=f.taylor_order,
         substeps=f.integration_substeps,
+        gate_probability=None if f.gating is None else f.gating.probability,
         **extra,
     )

@@ -19,6 +19,14 @@ NonNeg = Annotated[float, Field(ge=0)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
+def _normalized(v: list[float], what: str) -> list[float]:
+    """``v / |v|``; a zero or non-finite ``v`` is an error naming ``what``."""
+    n = float(np.linalg.norm(v))
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"{what} must be non-zero")
+    return [float(c) / n for c in v]
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True, allow_inf_nan=False)
 
@@ -58,11 +66,58 @@ class LeaderConfig(_Model):
     orbit: OrbitConfig
 
 
+class BoxShape(_Model):
+    type: Literal["box"]
+    size_m: Annotated[list[Pos], Field(min_length=3, max_length=3)] = Field(
+        description="edge lengths along the target's x, y, z (centred at its centre of mass)"
+    )
+
+
+class EllipsoidShape(_Model):
+    type: Literal["ellipsoid"]
+    semi_axes_m: Annotated[list[Pos], Field(min_length=3, max_length=3)]
+
+
+class MeshShape(_Model):
+    type: Literal["mesh"]
+    file: Annotated[str, Field(min_length=1)] = Field(
+        description="closed triangle mesh (OBJ, STL, PLY) in the target frame, metres; a relative path is taken "
+        "from the scenario file's folder"
+    )
+
+
+ShapeConfig = Annotated[Union[BoxShape, EllipsoidShape, MeshShape], Field(discriminator="type")]
+
+
+class SampledFeaturesConfig(_Model):
+    sample_on_surface: Annotated[int, Field(ge=1, le=500)] = Field(
+        description="number of feature points drawn uniformly over the shape's surface (deterministic from the seed)"
+    )
+
+
 class TargetConfig(_Model):
     inertia_kgm2: Annotated[list[Pos], Field(min_length=3, max_length=3)] = Field(
         description="principal moments Ix, Iy, Iz (kg m^2); only their ratios matter torque-free"
     )
-    feature_points_m: Annotated[list[Vec3], Field(min_length=1)]
+    feature_points_m: Annotated[list[Vec3], Field(min_length=1)] | None = Field(
+        default=None, description="feature points P_i in the target frame; or feature_points with a shape"
+    )
+    shape: ShapeConfig | None = Field(
+        default=None,
+        description="the target's body, `{type: box, size_m}`, `{type: ellipsoid, semi_axes_m}` or `{type: mesh, "
+        "file}`: occlusion, illumination, feature sampling (docs/realism.md)",
+    )
+    feature_points: SampledFeaturesConfig | None = Field(
+        default=None, description="`{sample_on_surface: N}` instead of feature_points_m (needs shape)"
+    )
+
+    @model_validator(mode="after")
+    def _points(self):
+        if (self.feature_points_m is None) == (self.feature_points is None):
+            raise ValueError("give exactly one of feature_points_m or feature_points")
+        if self.feature_points is not None and self.shape is None:
+            raise ValueError("feature_points: {sample_on_surface: N} needs target.shape")
+        return self
 
     @field_validator("inertia_kgm2")
     @classmethod
@@ -84,15 +139,37 @@ class InitialStateConfig(_Model):
     @field_validator("q")
     @classmethod
     def _nonzero(cls, v):
-        n = float(np.linalg.norm(v))
-        if not np.isfinite(n) or n < 1e-12:
-            raise ValueError("quaternion must be non-zero")
-        return [float(c) / n for c in v]
+        return _normalized(v, "quaternion")
 
 
 class CameraConfig(_Model):
     baseline_m: Pos = 1.0
     focal_length: Pos = 1.0
+    resolution_px: Annotated[list[Annotated[int, Field(gt=0)]], Field(min_length=2, max_length=2)] | None = Field(
+        default=None,
+        description="[W, H] of each camera's image in pixels; sets the pixel camera (docs/realism.md): features "
+        "outside either image are not measured, and noise may be given in pixels",
+    )
+    fov_deg: Annotated[float, Field(gt=0, lt=180)] | None = Field(
+        default=None, description="horizontal field of view (with resolution_px; or focal_length_px)"
+    )
+    focal_length_px: Pos | None = Field(default=None, description="focal length in pixels (with resolution_px)")
+    principal_point_px: Annotated[list[float], Field(min_length=2, max_length=2)] | None = Field(
+        default=None, description="[c_x, c_y] in pixels; default the image centre [W/2, H/2]"
+    )
+
+    @model_validator(mode="after")
+    def _pixel_camera(self):
+        px = (self.fov_deg, self.focal_length_px, self.principal_point_px)
+        if self.resolution_px is None:
+            if any(v is not None for v in px):
+                raise ValueError("fov_deg, focal_length_px and principal_point_px need resolution_px")
+            return self
+        if (self.fov_deg is None) == (self.focal_length_px is None):
+            raise ValueError("with resolution_px give exactly one of fov_deg or focal_length_px")
+        if self.focal_length != 1.0:
+            raise ValueError("focal_length (normalized-image scale) must stay 1 with a pixel camera (resolution_px)")
+        return self
 
 
 class PseudoMeasurementConfig(_Model):
@@ -143,6 +220,26 @@ class PseudoMeasurementConfig(_Model):
         return self
 
 
+class OutlierConfig(_Model):
+    """Wrong correspondences of the feature tracker (docs/realism.md)."""
+
+    probability: Annotated[float, Field(ge=0, le=1)] = Field(description="per feature and step")
+    model: Literal["uniform_image", "swapped_feature"] = Field(
+        default="uniform_image",
+        description="uniform_image: a spurious static point anywhere in the image (both cameras, same row); "
+        "swapped_feature: the measurement of another feature of the target",
+    )
+
+
+class IlluminationConfig(_Model):
+    sun_direction_lvlh: Vec3 = Field(description="direction toward the Sun in the leader's LVLH frame (normalized)")
+
+    @field_validator("sun_direction_lvlh")
+    @classmethod
+    def _unit(cls, v):
+        return _normalized(v, "sun_direction_lvlh")
+
+
 class MeasurementsConfig(_Model):
     image_sigma: NonNeg = 1e-5
     flow_sigma: NonNeg = 1e-5
@@ -151,6 +248,28 @@ class MeasurementsConfig(_Model):
         default=None, description="noise of the disparity channel; default sqrt(2) image_sigma"
     )
     inertia_pseudo_measurement: PseudoMeasurementConfig = PseudoMeasurementConfig()
+    image_sigma_px: NonNeg | None = Field(
+        default=None, description="image noise in pixels (needs camera.resolution_px); replaces image_sigma"
+    )
+    flow_sigma_pxps: NonNeg | None = Field(
+        default=None, description="image-velocity noise in px/s (needs camera.resolution_px); replaces flow_sigma"
+    )
+    dropout_probability: Annotated[float, Field(ge=0, lt=1)] = Field(
+        default=0.0, description="probability that the tracker loses a feature at a step (per feature and step)"
+    )
+    occlusion: bool = Field(
+        default=False,
+        description="with target.shape: a feature is measured only when its surface faces both cameras and no part of "
+        "the body is in between (ray test)",
+    )
+    illumination: IlluminationConfig | None = Field(
+        default=None, description="`{sun_direction_lvlh: [x, y, z]}` (needs target.shape): unlit features are not seen"
+    )
+    outliers: OutlierConfig | None = Field(
+        default=None,
+        description="tracker outliers `{probability: p, model: uniform_image | swapped_feature}` (per feature and "
+        "step; model default uniform_image); see docs/realism.md",
+    )
 
     @property
     def disparity_sigma_value(self) -> float:
@@ -175,6 +294,10 @@ class FilterMeasurementNoise(_Model):
     flow_sigma: Pos | None = None
     disparity_sigma: Pos | None = None
     angular_acceleration_sigma_radps2: Pos | None = None
+    image_sigma_px: Pos | None = Field(default=None, description="σ for u, v in pixels (pixel camera); replaces image_sigma")
+    flow_sigma_pxps: Pos | None = Field(
+        default=None, description="σ for the image velocities in px/s (pixel camera); replaces flow_sigma"
+    )
 
 
 class ProcessNoiseConfig(_Model):
@@ -188,8 +311,21 @@ class ProcessNoiseConfig(_Model):
     k: NonNeg = 1e-10
 
 
+class GatingConfig(_Model):
+    """Per-feature chi-square gate on the innovation before the update (docs/filters.md)."""
+
+    probability: Annotated[float, Field(gt=0, lt=1)] = Field(
+        default=0.999, description="probability that a correct feature passes the gate"
+    )
+
+
 class _FilterBase(_Model):
     name: str | None = Field(default=None, description="label in outputs; default the type")
+    gating: GatingConfig | None = Field(
+        default=None,
+        description="`{probability: 0.999}`: per-feature chi-square gate on the innovation before the update (the "
+        "IEKF at its first iterate); null = no gate. See docs/filters.md",
+    )
     measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
     transition: Literal["expm", "taylor"] = "taylor"
@@ -230,6 +366,35 @@ class DivergenceConfig(_Model):
     )
     nis_window_steps: Annotated[int, Field(ge=1)] = 10
     nis_start_s: NonNeg = 10.0
+    gated_fraction: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.5,
+        description="a gated filter is lost when, from nis_start_s on, its gate rejected at least this fraction of "
+        "the features it was given at each of nis_window_steps steps",
+    )
+
+
+class DragConfig(_Model):
+    """Atmospheric drag on both spacecraft (exponential density, co-rotating atmosphere)."""
+
+    density_model: Literal["exponential"] = "exponential"
+    ballistic_coefficient_leader_kgpm2: Pos = Field(description="m / (C_D A) of the leader")
+    ballistic_coefficient_target_kgpm2: Pos = Field(description="m / (C_D A) of the target")
+    reference_density_kgpm3: Pos = Field(default=3.614e-14, description="density at reference_altitude_km")
+    reference_altitude_km: NonNeg = 700.0
+    scale_height_km: Pos = 88.667
+
+
+class TruthModelConfig(_Model):
+    """Model mismatch in the truth: the filters keep the Keplerian, torque-free model (docs/realism.md)."""
+
+    j2: bool = Field(default=False, description="J2 on both spacecraft (propagated in the inertial frame)")
+    drag: DragConfig | None = Field(
+        default=None,
+        description="`{density_model: exponential, ballistic_coefficient_leader_kgpm2, "
+        "ballistic_coefficient_target_kgpm2}` (+ reference_density_kgpm3 = 3.614e-14, reference_altitude_km = 700, "
+        "scale_height_km = 88.667); null = no drag",
+    )
+    gravity_gradient_torque: bool = Field(default=False, description="gravity-gradient torque on the target")
 
 
 class Scenario(_Model):
@@ -249,6 +414,25 @@ class Scenario(_Model):
     )
     percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
     divergence: DivergenceConfig = DivergenceConfig()
+    truth_model: TruthModelConfig | None = Field(
+        default=None,
+        description="`{j2, drag, gravity_gradient_torque}`: the truth is propagated in the inertial frame with these "
+        "and converted to the leader's LVLH; null = the thesis's Keplerian, torque-free relative model",
+    )
+
+    @model_validator(mode="after")
+    def _pixel_noise_needs_pixels(self):
+        m = self.measurements
+        if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
+            raise ValueError("measurements.image_sigma_px / flow_sigma_pxps need camera.resolution_px")
+        if self.target.shape is None and (m.occlusion or m.illumination is not None):
+            raise ValueError("measurements.occlusion / illumination need target.shape")
+        if self.camera.resolution_px is None:
+            for f in self.filters:
+                r = f.measurement_noise
+                if r.image_sigma_px is not None or r.flow_sigma_pxps is not None:
+                    raise ValueError(f"filter {f.label}: measurement_noise in pixels needs camera.resolution_px")
+        return self
 
     @field_validator("filters")
     @classmethod

@@ -16,7 +16,7 @@ This layer binds the generic kernels of ``core.kalman`` to the model of MODEL.md
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +26,7 @@ from ..core import camera, dynamics, jacobians, state as st
 from ..core import kalman as kf
 from ..core.inertia import h_pseudo
 from ..core.orbit import leader_kinematics
+from . import gating
 
 Array = NDArray[np.float64]
 
@@ -64,6 +65,15 @@ class StepMeasurement:
     visible: Array  # (N,) bool: features in view at this step
     t: float
     alpha_var: Array | None = None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
+    feature_mask: Array | None = None  # (B, n_visible) bool: per trial, the visible features measured (faults)
+
+
+@dataclass(frozen=True)
+class GatedUpdate(kf.Update):
+    """An update with its feature bookkeeping (sensor faults and gating)."""
+
+    rejected: Array = field(default=None)  # (b,) int: features rejected by the gate
+    features_used: Array = field(default=None)  # (b,) int: features that entered the update
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):
@@ -114,9 +124,20 @@ def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSet
     measure = measurement_model(setup, step)
     R = measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
     y = step.y[rows]
+    nvis = int(step.visible.sum())
+    C = channel_variances(fs, setup.disparity).size
+    keep = None if step.feature_mask is None else step.feature_mask[rows]
+    rejected = np.zeros(rows.size, int)
+    if fs.gate_probability is not None and nvis:
+        hx, H = measure(x, rows, jac=True)
+        d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
+        keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
+    if keep is not None:
+        measure = gating.masked_measure(measure, step.y, rows, keep, C)
+    used = np.full(rows.size, nvis) if keep is None else keep.sum(axis=-1)
     if fs.kind == "ekf":
         u = kf.ekf_update(x, P, y, measure, R, rows)
     else:
         u = kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
                            step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip
-    return kf.Update(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged)
+    return GatedUpdate(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)

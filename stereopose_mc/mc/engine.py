@@ -41,6 +41,7 @@ from typing import NamedTuple
 from ..config.budget import memory_problem
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
+from ..config.sensor import feature_count
 from ..outputs import integrity, rundir, runlock, tables
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
@@ -79,7 +80,8 @@ def prepare(scn: Scenario) -> Prepared:
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
-    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s)
+    bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s,
+                    d.gated_fraction)
     return Prepared(scn, setup, truth, exact, filters, bounds)
 
 
@@ -343,7 +345,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     manifest = rundir.base_manifest(opts.command)
     manifest.update(
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
-        filters=[f.label for f in scn.filters], state_dim=13 + 3 * len(scn.target.feature_points_m) + 2,
+        filters=[f.label for f in scn.filters], state_dim=13 + 3 * feature_count(scn) + 2,
         timeseries=opts.timeseries, code_version=code, start=rundir.now_iso(),
         end=None, chunks=[],
     )  # fmt: skip

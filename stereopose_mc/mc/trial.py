@@ -10,7 +10,9 @@ Divergence (documented in docs/filters.md): a non-finite state or covariance, a
 covariance that is not positive definite (Cholesky fails), an error beyond the
 scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``), or
 a lost filter: from ``nis_start_s`` on, its NIS averaged over the last
-``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension.
+``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension, or
+(gated filters) its gate rejected at least ``gated_fraction`` of the features it was
+given at every one of those steps (a filter locked out by its own gate).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from ..core import kalman as kf
 from ..filters import relnav
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
+from ..sim.faults import Faults, apply_faults
 from ..sim.truth import Truth
 
 Array = NDArray[np.float64]
@@ -48,6 +51,7 @@ class Bounds:
     nis_ratio: float = 100.0
     nis_window_steps: int = 10
     nis_start_s: float = 10.0
+    gated_fraction: float = 0.5
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -108,6 +112,8 @@ class FilterRun:
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
     P_final: Array | None = None  # (B, n, n)
+    dof: Array | None = None  # (B, K+1) per-trial measurement dimension (features dropped or gated out removed)
+    gated: Array | None = None  # (B, K+1) int: features rejected by the filter's gate at each step
 
 
 def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
@@ -133,12 +139,14 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
 
 
 def run_filter(
-    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds
+    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
+    kept: Array | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
-    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``. Updates at
-    ``t_k, k >= 1``; step 0 holds the initial estimate's errors.
+    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
+    the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
+    holds the initial estimate's errors.
     """
     B, n = x0_hat.shape
     K = setup.steps
@@ -148,6 +156,8 @@ def run_filter(
     # measurement dimension per step: visible features x channels (+ 3 pseudo rows)
     nis_dof = visible.sum(axis=1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
     nis_dof[0] = 0
+    dof = np.broadcast_to(nis_dof, (B, K + 1)).copy()
+    gated = np.zeros((B, K + 1), np.int64)
     its = np.zeros((B, K + 1), int)
     conv = np.zeros((B, K + 1), bool)
     div_step = np.full(B, -1)
@@ -167,6 +177,8 @@ def run_filter(
     for k in range(1, K + 1):
         if active.size == 0:
             break
+        if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
+            setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
             xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
@@ -180,6 +192,7 @@ def run_filter(
             y=relnav.stack_measurement(y_feat[:, k], vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
             t=truth.t[k], alpha_var=pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor)
             if src.differentiated else None,  # None: the filter's sigma_alpha^2, as before
+            feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
@@ -191,6 +204,9 @@ def run_filter(
         v_hist = np.concatenate([v_hist[:, 1:], _omega_var(P)[:, None]], axis=1)
         err[active, k] = e
         its[active, k], conv[active, k] = u.iterations, u.converged
+        if getattr(u, "features_used", None) is not None:
+            dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
+            gated[active, k] = u.rejected
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
@@ -201,18 +217,33 @@ def run_filter(
             w0 = k - bounds.nis_window_steps + 1
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                ratio = np.nanmean(nis[active, w0 : k + 1] / np.maximum(nis_dof[w0 : k + 1], 1), axis=1)
+                ratio = np.nanmean(nis[active, w0 : k + 1] / np.maximum(dof[active, w0 : k + 1], 1), axis=1)
             for j in np.flatnonzero(ratio > bounds.nis_ratio):
                 if not bad[j]:
                     bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
                               f"{ratio[j]:.3g} x its dimension > {bounds.nis_ratio:g}")  # fmt: skip
+            if fs.gate_probability is not None:
+                lock = _gated_out(gated[active, w0 : k + 1], dof[active, w0 : k + 1], y_feat.shape[-1],
+                                  bounds.gated_fraction)  # fmt: skip
+                for j in np.flatnonzero(lock):
+                    if not bad[j]:
+                        bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
+                                  f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
         keep = np.ones(active.size, bool)
         for j, i in enumerate(active):
             if bad[j]:
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
         active = active[keep]
-    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P)
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P,
+                     dof=dof, gated=gated)
+
+
+def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:
+    """Per trial: at every step of the window, ``gated >= fraction`` of the features given (used + gated)."""
+    used = (dof - dof % channels) // channels  # the pseudo rows (3 < channels) are the remainder
+    offered = used + gated
+    return np.all((offered > 0) & (gated >= fraction * offered), axis=-1)
 
 
 def _omega_var(P: Array) -> Array:
@@ -245,8 +276,9 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     def cat(attr, shape, fill):
         return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
 
-    u = kf.Update(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
-                  cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
+    u = relnav.GatedUpdate(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
+                           cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False),
+                           cat("rejected", (), 0), cat("features_used", (), 0))  # fmt: skip
     return u, reasons
 
 
@@ -266,6 +298,7 @@ class ChunkResult:
     trials: Array  # (B,) trial indices
     runs: list[FilterRun]
     runtime_s: float
+    faults: Faults | None = None  # the trials' tracker faults (None: an ideal tracker)
 
 
 def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
@@ -275,10 +308,14 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
     noisy = meas.noisy(setup, exact, draws)
     x0_hat = meas.initial_estimates(setup, draws)
+    y, faults = noisy.y, None
+    if setup.sensor.faults:
+        y, faults = apply_faults(setup.sensor, seed, trials, noisy.y, exact.y, exact.visible)
     runs = []
     for fs in filters:
         t1 = time.perf_counter()
-        r = run_filter(x0_hat, setup, truth, noisy.y, noisy.alpha, exact.visible, fs, bounds)
+        r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
+                       None if faults is None else faults.kept)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
-    return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0)
+    return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

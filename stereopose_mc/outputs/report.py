@@ -478,6 +478,9 @@ def render_report(data: RunData, fs: figs.FigureSet) -> str:
     body.append(html_table(["filter", "median NEES (window mean)", "median NIS (window mean)",
                             "mean IEKF iterations per step", "trials with unconverged IEKF steps"],
                            diagnostics_rows(data)))  # fmt: skip
+    from . import faults_report  # noqa: PLC0415 (it imports this module)
+
+    body += faults_report.section(data)
 
     body.append("<h2>Compute time per trial</h2>")
     if data.timing is not None and not data.timing.empty:

@@ -22,10 +22,12 @@ COLUMN_UNITS = {
     "trial": "-", "filter": "-", "seed": "-", **ERROR_UNITS, **{f"final_{n}": u for n, u in ERROR_UNITS.items()},
     "diverged": "-", "diverged_step": "-", "diverged_reason": "-", "iterations_mean": "-",
     "iekf_unconverged_steps": "-", "nees_mean": "-", "nis_mean": "-",
-    "step": "-", "t": "s", "nees": "-", "nis": "-", "nis_dof": "-", "iterations": "-", "converged": "-",
+    "step": "-", "t": "s", "nees": "-", "nis": "-", "nis_dof": "-", "iterations": "-", "converged": "-", "gated": "-",
+    "gated_features": "-", "dropped_features": "-", "outlier_features": "-",
     "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
 }  # fmt: skip
-TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged"]
+TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged",
+              "gated"]
 
 
 def window_mask(t: np.ndarray, start: float) -> np.ndarray:
@@ -73,8 +75,19 @@ def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: i
         d["iekf_unconverged_steps"] = np.sum((r.iterations[:, 1:] > 0) & ~r.converged[:, 1:], axis=1).astype(np.int64)
         d["nees_mean"] = nees_mean
         d["nis_mean"] = nis_mean
+        d.update(_fault_columns(chunk, r))
         frames.append(pd.DataFrame(d))
     return pd.concat(frames, ignore_index=True)
+
+
+def _fault_columns(chunk: ChunkResult, r) -> dict[str, np.ndarray]:
+    """Per trial: features rejected by the filter's gate, and the tracker's dropouts and outliers (steps >= 1)."""
+    B = len(chunk.trials)
+    gated = np.zeros(B, np.int64) if r.gated is None else r.gated[:, 1:].sum(axis=1).astype(np.int64)
+    f = chunk.faults
+    drop = np.zeros(B, np.int64) if f is None else (~f.kept[:, 1:]).sum(axis=(1, 2)).astype(np.int64)
+    out = np.zeros(B, np.int64) if f is None else f.outlier[:, 1:].sum(axis=(1, 2)).astype(np.int64)
+    return {"gated_features": gated, "dropped_features": drop, "outlier_features": out}
 
 
 def timing_frame(chunk: ChunkResult, chunk_id: int) -> pd.DataFrame:
@@ -104,9 +117,11 @@ def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None 
             d[name] = r.errors[sel, :, j].reshape(-1)
         d["nees"] = r.nees[sel].reshape(-1)
         d["nis"] = r.nis[sel].reshape(-1)
-        d["nis_dof"] = np.tile(r.nis_dof.astype(np.int16), B)
+        d["nis_dof"] = (np.tile(r.nis_dof.astype(np.int16), B) if r.dof is None
+                        else r.dof[sel].reshape(-1).astype(np.int16))  # fmt: skip
         d["iterations"] = r.iterations[sel].reshape(-1).astype(np.int16)
         d["converged"] = r.converged[sel].reshape(-1)
+        d["gated"] = (np.zeros(B * K1) if r.gated is None else r.gated[sel].reshape(-1)).astype(np.int16)
         frames.append(pd.DataFrame(d))
     return pd.concat(frames, ignore_index=True)
 

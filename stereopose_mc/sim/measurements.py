@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from ..config.resolve import Setup
 from ..core import camera, state as st
+from . import visibility
 from .truth import Truth
 
 Array = NDArray[np.float64]
@@ -45,7 +46,7 @@ class Measurements:
 def noise_free(setup: Setup, truth: Truth) -> Measurements:
     """The exact measurements of the truth (no noise)."""
     y = camera.h_features(truth.x, setup.baseline, setup.disparity, setup.focal)
-    vis = camera.visible(truth.x)
+    vis = visibility.visible(setup, truth.x)
     return Measurements(y=y, alpha=truth.alpha.copy(), visible=vis)
 
 

@@ -69,7 +69,7 @@ def test_minimal_scenario_from_the_required_keys_loads():
     # the doc's **required** keys are exactly what a minimal file needs
     required = [r[0] for r in gen.scenario_rows() if r[3] == "**required**"]
     assert set(required) == {
-        "name", "seed", "leader.orbit.a_km", "leader.orbit.e", "target.inertia_kgm2", "target.feature_points_m",
+        "name", "seed", "leader.orbit.a_km", "leader.orbit.e", "target.inertia_kgm2",
         "truth_initial_state.rho_m", "truth_initial_state.rho_dot_mps", "truth_initial_state.omega_degps",
         "truth_initial_state.q", "initial_covariance.rho_m2", "initial_covariance.rho_dot_m2ps2",
         "initial_covariance.omega_deg2ps2", "initial_covariance.q", "initial_covariance.feature_points_m2",
@@ -86,6 +86,8 @@ def test_minimal_scenario_from_the_required_keys_loads():
         for p in parents:
             d = d.setdefault(p, {})
         d[leaf] = values.get(key, 1.0)
+    # plus the feature points: target.feature_points_m, or feature_points with a shape (exactly one of them)
+    data["target"]["feature_points_m"] = values["target.feature_points_m"]
     s = load_scenario_text(yaml.safe_dump(data), "mini.yaml")
     assert s.truth_initial_state.q == [1.0, 0.0, 0.0, 0.0]
     assert [f.type for f in s.filters] == ["iekf"] and s.trials == 100

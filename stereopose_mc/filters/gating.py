@@ -1,0 +1,91 @@
+"""Per-feature chi-square gating of the innovation, and measurement masks (batched).
+
+A measurement of ``F`` features stacks ``C`` rows per feature (then possibly other rows,
+e.g. the inertia pseudo-measurement, which are never gated). Before an update, each
+feature ``f`` of each trial is tested on its innovation ``nu_f = y_f - h_f(x-)``
+against its predicted covariance, the ``C x C`` diagonal block
+
+    S_f = H_f P- H_f^T + R_f                                   (EKF / IEKF at x- )
+
+    d_f^2 = nu_f^T S_f^-1 nu_f  >  chi2_C^-1(p)   ->  rejected
+
+(Bar-Shalom, Li & Kirubarajan, *Estimation with Applications to Tracking and
+Navigation*, 5.4; Stone Soup's ``gater.distance.DistanceGater`` with a Mahalanobis
+measure). For a correct feature ``d_f^2 ~ chi2(C)``, so it is rejected with probability
+``1 - p``. The IEKF gates once, at its first iterate (the prior), and keeps the set.
+
+Any filter can use the gate: ``gate`` takes innovations and innovation-covariance
+blocks however they were obtained (a UKF passes its sigma-point ``S`` blocks);
+``linearized_blocks`` computes them for an EKF-type filter. A rejected (or dropped)
+feature is removed from the update by ``masked_measure``: its rows get ``h(x) = y`` and
+``H = 0``, which is exactly the update without those rows (its column of the gain is
+zero, it adds nothing to the NIS or to the IEKF's cost), at a fixed batch shape.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+Array = NDArray[np.float64]
+
+
+def threshold(probability: float, dof: int) -> float:
+    """The gate ``chi2_dof^-1(probability)`` on the squared Mahalanobis distance."""
+    return float(chi2.ppf(probability, dof))
+
+
+def linearized_blocks(H: Array, P: Array, R: Array, n_features: int, channels: int) -> Array:
+    """``S_f = H_f P H_f^T + R_f`` of the first ``n_features * channels`` rows, ``(b, F, C, C)``.
+
+    ``H (b, m, n)``, ``P (b, n, n)``, ``R`` the diagonal ``(m,)`` or ``(b, m)``.
+    """
+    b, n = H.shape[0], H.shape[-1]
+    FC = n_features * channels
+    Hf = H[:, :FC].reshape(b, n_features, channels, n)
+    S = np.einsum("bfcn,bnm,bfdm->bfcd", Hf, P, Hf, optimize=True)
+    Rf = np.broadcast_to(R, (b, R.shape[-1]))[:, :FC].reshape(b, n_features, channels)
+    idx = np.arange(channels)
+    S[..., idx, idx] += Rf
+    return S
+
+
+def distances2(nu: Array, S_blocks: Array) -> Array:
+    """``d_f^2 = nu_f^T S_f^-1 nu_f``, ``(b, F)``, from ``nu (b, m)`` (first ``F C`` rows) and ``S_blocks``."""
+    b, F, C, _ = S_blocks.shape
+    v = nu[:, : F * C].reshape(b, F, C)
+    return np.einsum("bfc,bfc->bf", v, np.linalg.solve(S_blocks, v[..., None])[..., 0])
+
+
+def gate(d2: Array, probability: float, channels: int, keep: Array | None = None) -> tuple[Array, Array]:
+    """``(keep, rejected)``: features passing the gate (and ``keep``), and per trial the count rejected.
+
+    Features already excluded by ``keep`` (dropped by the tracker) are not counted as rejected.
+    """
+    ok = d2 <= threshold(probability, channels)
+    prior = np.ones_like(ok) if keep is None else keep
+    return prior & ok, np.sum(prior & ~ok, axis=-1)
+
+
+def masked_measure(measure, y: Array, rows: Array, keep: Array, channels: int):
+    """``measure`` with the rows of the features not in ``keep (b, F)`` taken out of the update.
+
+    ``y (B, m)`` is the step's measurement of the whole chunk and ``rows (b,)`` the trials
+    of the batch ``keep`` belongs to; the returned callable accepts any subset of them (as
+    the IEKF's per-trial iteration does).
+    """
+    B, m = y.shape
+    full = np.ones((B, m), bool)
+    F = keep.shape[-1]
+    full[rows, : F * channels] = np.repeat(keep, channels, axis=-1)
+
+    def measure_masked(x: Array, sub: Array, jac: bool = True):
+        hx, H = measure(x, sub, jac)
+        mk = full[sub]
+        hx = np.where(mk, hx, y[sub])
+        if H is not None:
+            H = H * mk[..., None]
+        return hx, H
+
+    return measure_masked

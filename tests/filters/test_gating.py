@@ -1,0 +1,108 @@
+"""Per-feature chi-square gating (filters/gating.py) on linear-Gaussian data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from stereopose_mc.core import kalman as kf
+from stereopose_mc.filters import gating
+
+F, C, n = 6, 4, 5
+
+
+def linear_problem(b: int, seed: int = 0):
+    """Random linear measurements of b trials: y = H x_true + v, x_true ~ N(x, P), v ~ N(0, R)."""
+    rng = np.random.default_rng(seed)
+    H = rng.normal(size=(b, F * C, n))
+    A = rng.normal(size=(b, n, n))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+    R = rng.uniform(0.5, 2.0, size=F * C)
+    x = rng.normal(size=(b, n))
+    x_true = x + np.einsum("bij,bj->bi", np.linalg.cholesky(P), rng.normal(size=(b, n)))
+    y = np.einsum("bij,bj->bi", H, x_true) + np.sqrt(R) * rng.normal(size=(b, F * C))
+    return rng, H, P, R, x, y
+
+
+def test_blocks_are_the_diagonal_blocks_of_S():
+    _, H, P, R, _, _ = linear_problem(3)
+    S = kf.innovation_covariance(P, H, np.broadcast_to(R, (3, F * C)).copy())
+    blocks = gating.linearized_blocks(H, P, R, F, C)
+    for f in range(F):
+        np.testing.assert_allclose(blocks[:, f], S[:, f * C : (f + 1) * C, f * C : (f + 1) * C], rtol=1e-12)
+
+
+def test_threshold_is_the_chi_square_quantile():
+    # chi2(4) has survival function exp(-t/2)(1 + t/2): solve it for 1 - p = 1e-3 by hand (bisection)
+    lo, hi = 0.0, 100.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.exp(-mid / 2) * (1 + mid / 2) > 1e-3 else (lo, mid)
+    assert gating.threshold(0.999, 4) == pytest.approx(lo, rel=1e-9)
+
+
+@pytest.mark.parametrize("p", [0.9, 0.99])
+def test_false_rejection_rate_on_noise_only_data(p):
+    b = 5000
+    _, H, P, R, x, y = linear_problem(b, seed=1)
+    hx = np.einsum("bij,bj->bi", H, x)
+    d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, F, C))
+    keep, rejected = gating.gate(d2, p, C)
+    rate = 1.0 - keep.mean()
+    sd = np.sqrt((1 - p) * p / keep.size)
+    assert abs(rate - (1 - p)) < 4 * sd, (rate, 1 - p)
+    assert rejected.sum() == (~keep).sum()
+    # the distances themselves are chi-square with C degrees of freedom
+    assert stats.kstest(d2.ravel(), stats.chi2(C).cdf).pvalue > 1e-3
+
+
+def test_planted_outliers_are_rejected():
+    b = 2000
+    rng, H, P, R, x, y = linear_problem(b, seed=2)
+    hx = np.einsum("bij,bj->bi", H, x)
+    S = gating.linearized_blocks(H, P, R, F, C)
+    planted = rng.random((b, F)) < 0.05
+    # an outlier 30 standard deviations away along a random direction of its S_f
+    d = rng.normal(size=(b, F, C))
+    d *= 30.0 / np.linalg.norm(d, axis=-1, keepdims=True)
+    off = np.einsum("bfij,bfj->bfi", np.linalg.cholesky(S), d) * planted[..., None]
+    nu = y - hx + off.reshape(b, F * C)
+    keep, rejected = gating.gate(gating.distances2(nu, S), 0.999, C)
+    assert not keep[planted].any()  # every planted outlier rejected
+    false_rate = 1.0 - keep[~planted].mean()
+    assert false_rate < 1e-3 + 4 * np.sqrt(1e-3 / (~planted).sum())
+    # dropped features are not counted as rejected
+    prior = ~planted
+    keep2, rej2 = gating.gate(gating.distances2(nu, S), 0.999, C, prior)
+    assert not keep2[planted].any() and rej2.sum() == (prior & ~keep2).sum()
+
+
+def _linear_measure(H_all):
+    def measure(x, rows, jac=True):
+        H = H_all[rows]
+        return np.einsum("bij,bj->bi", H, x), (H if jac else None)
+
+    return measure
+
+
+@pytest.mark.parametrize("kind", ["ekf", "iekf"])
+def test_masked_update_equals_the_update_without_those_rows(kind):
+    b = 4
+    rng, H, P, R, x, y = linear_problem(b, seed=3)
+    keep = rng.random((b, F)) < 0.6
+    keep[:, 0] = True
+    rows = np.arange(b)
+    measure = gating.masked_measure(_linear_measure(H), y, rows, keep, C)
+    Rb = np.broadcast_to(R, (b, F * C))
+    if kind == "ekf":
+        u = kf.ekf_update(x, P, y, measure, Rb, rows)
+    else:
+        u = kf.iekf_update(x, P, y, measure, Rb, rows, tol=1e-12, max_iter=3, step_control="none")
+    for i in range(b):
+        sel = np.repeat(keep[i], C)
+        ref = kf.ekf_update(x[i : i + 1], P[i : i + 1], y[i : i + 1, sel],
+                            _linear_measure(H[i : i + 1, sel]), R[sel][None], np.array([0]))  # fmt: skip
+        np.testing.assert_allclose(u.x[i], ref.x[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(u.P[i], ref.P[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(u.nis[i], ref.nis[0], rtol=1e-9)
