@@ -35,6 +35,7 @@ def simulate(
     no_noise: bool = typer.Option(False, "--no-noise", help="write the exact measurements"),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
+    trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
     from ..simulate import simulate as run_simulate
@@ -46,8 +47,8 @@ def simulate(
     if out.exists() and any(out.iterdir()) and not overwrite:
         fail(f"{out} already exists and is not empty; pass --overwrite to replace it")
     try:
-        s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv)
-    except RunDirError as exc:
+        s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv, trial=trial)
+    except (RunDirError, ValueError) as exc:
         fail(str(exc))
     typer.echo(
         f"{scn.name}: {s.steps} steps, {s.features} features, range {s.range_min:.2f}-{s.range_max:.2f} m, "

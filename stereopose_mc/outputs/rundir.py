@@ -79,13 +79,17 @@ def write_json(path: Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
 
 
-def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None) -> None:
+def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None,
+                  units: dict[str, str] | None = None) -> None:  # fmt: skip
     """Write ``df`` as Parquet atomically, with ``metadata`` in the file's key-value metadata.
 
     Written without pandas' index and with a fixed writer so that the same table gives
-    the same bytes.
+    the same bytes. ``units``: column -> unit, stored as the field metadata ``unit``.
     """
     table = pa.Table.from_pandas(df, preserve_index=False)
+    if units:
+        table = table.cast(pa.schema([f.with_metadata({b"unit": units[f.name].encode()}) if f.name in units else f
+                                      for f in table.schema], metadata=table.schema.metadata))  # fmt: skip
     meta = dict(table.schema.metadata or {})
     meta.pop(b"pandas", None)
     for k, v in (metadata or {}).items():
