@@ -46,7 +46,7 @@ def has_dispersions(scn: Scenario) -> bool:
 
 def _empty_run(label: str, B: int, K1: int) -> FilterRun:
     return FilterRun(label, np.full((B, K1, 6), np.nan), np.full((B, K1), np.nan), np.full((B, K1), np.nan),
-                     np.zeros(K1, int), np.zeros((B, K1), int), np.zeros((B, K1), bool), np.full(B, -1),
+                     np.zeros((B, K1), int), np.zeros((B, K1), int), np.zeros((B, K1), bool), np.full(B, -1),
                      [""] * B)  # fmt: skip
 
 
@@ -55,7 +55,7 @@ def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
         getattr(dst, name)[rows] = getattr(src, name)
     for r, reason in zip(rows, src.diverged_reason):
         dst.diverged_reason[r] = reason
-    dst.nis_dof = src.nis_dof
+    dst.nis_dof[rows] = src.nis_dof
 
 
 def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -> tuple[ChunkResult, sd.TrialDispersions]:

@@ -1,0 +1,96 @@
+"""Dispersed campaigns through the engine: determinism, rerun, columns, invalid draws, validation."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+import yaml
+from scenarios import scenario_dict
+from typer.testing import CliRunner
+
+from stereopose_mc.cli.main import app
+from stereopose_mc.config import load_scenario_text
+from stereopose_mc.mc import engine
+from stereopose_mc.mc.rerun import rerun_trial
+
+DISP = {
+    "truth_initial_state.rho_m": {"dist": "normal", "std": [1.0, 3.0, 1.0]},
+    "truth_initial_state.omega_degps": {"dist": "uniform", "low": -0.3, "high": 0.3},
+    "target.inertia_kgm2": {"dist": "uniform", "low": [0.8, 0.9, 1.0], "high": [1.0, 1.1, 1.3], "mode": "replace"},
+    "leader.orbit.a_km": {"dist": "normal", "std": 600.0, "applies_to": "both"},  # some draws are invalid
+    "camera.baseline_m": {"dist": "normal", "std": 0.01},
+}
+
+
+def text(**over) -> str:
+    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 15.0, "error_window_start_s": 5.0}, trials=8, **over)
+    d["dispersions"] = DISP
+    return yaml.safe_dump(d, sort_keys=False)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    scn = load_scenario_text(text(), "<test>")
+    root = tmp_path_factory.mktemp("disp")
+    a = engine.run(scn, root / "a", engine.RunOptions(jobs=1, chunk_size=8, command=["test"]))
+    b = engine.run(scn, root / "b", engine.RunOptions(jobs=2, chunk_size=3, command=["test"]))
+    return root, a, b
+
+
+def test_dispersed_run_is_byte_identical_across_jobs_and_chunks(runs):
+    root, _, _ = runs
+    for name in ("trials.parquet", "timeseries.parquet", "percentiles.csv"):
+        assert (root / "a" / name).read_bytes() == (root / "b" / name).read_bytes(), name
+
+
+def test_columns_units_and_invalid_trials(runs):
+    root, a, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    assert {"truth_initial_state.rho_m[1]", "target.inertia_kgm2[2]", "leader.orbit.a_km", "invalid"} <= set(df)
+    unit = {f.name: (f.metadata or {}).get(b"unit") for f in pq.read_schema(root / "a" / "trials.parquet")}
+    assert unit["truth_initial_state.omega_degps[0]"] == b"deg/s" and unit["leader.orbit.a_km"] == b"km"
+    bad = df["leader.orbit.a_km"] * (1 - 0.05) < 6378.137
+    assert bad.any() and (~bad).any()  # the seed gives both kinds
+    assert (df["invalid"] == bad).all()
+    assert df.loc[bad, "diverged"].all() and (df.loc[bad, "diverged_step"] == 0).all()
+    assert df.loc[bad, "diverged_reason"].str.startswith("invalid draw: leader.orbit").all()
+    assert df.loc[~bad, "e_rho"].notna().any()
+
+
+def test_rerun_reproduces_a_dispersed_trial(runs):
+    root, _, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    j = int(df.loc[~df["invalid"], "trial"].iloc[-1])
+    res = rerun_trial(root / "a", j)
+    assert res.identical
+
+
+def test_simulate_trial_writes_the_dispersed_truth(runs, tmp_path):
+    root, _, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    j = int(df.loc[~df["invalid"], "trial"].iloc[0])
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(text())
+    r = CliRunner().invoke(app, ["simulate", str(cfg), "--trial", str(j), "--out", str(tmp_path / "sim")])
+    assert r.exit_code == 0, r.output
+    truth = pd.read_parquet(tmp_path / "sim" / "truth.parquet")
+    row = df[df["trial"] == j].iloc[0]
+    assert truth["rho_y"].iloc[0] == row["truth_initial_state.rho_m[1]"]
+
+
+def test_bad_dispersions_are_rejected_with_file_line_and_exit_2(tmp_path):
+    d = yaml.safe_load(text())
+    d["dispersions"] = {"sampling": "random",
+                        "truth_initial_state.rho": {"dist": "normal", "std": 1.0},
+                        "target.inertia_kgm2": {"dist": "uniform", "low": [0.1, 0.9, 1.0], "high": [1.0, 1.1, 1.3],
+                                                "mode": "replace"}}  # fmt: skip
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    lines = cfg.read_text().splitlines()
+    r = CliRunner().invoke(app, ["validate", str(cfg)])
+    assert r.exit_code == 2
+    err = r.output.splitlines()
+    line_rho = 1 + next(i for i, s in enumerate(lines) if "truth_initial_state.rho:" in s)
+    assert any(f"bad.yaml:{line_rho}: dispersions.truth_initial_state.rho: unknown" in e and "rho_m" in e for e in err)
+    assert any("dispersions.target.inertia_kgm2: can produce an invalid scenario" in e and "triangle" in e for e in err)
