@@ -251,3 +251,24 @@ def noisy_measurements(setups: list[Setup], exact: meas.Measurements, draws: mea
     y = exact.y + draws.image[..., :C] * sig[:, None, None, :]
     alpha = exact.alpha + np.array([s.sigma_alpha for s in setups])[:, None, None] * draws.alpha
     return meas.Measurements(y=y, alpha=alpha, visible=exact.visible)
+
+
+def factor_names(scn: Scenario) -> list[str]:
+    """Names of the unit-cube coordinates (the input factors of a Sobol analysis), in plan order.
+
+    A per-component distribution's factor is its column (``path[i]``); a rotation's are
+    ``path:u1..u3`` (Shoemake), a direction's ``path:direction_u1/u2`` and ``|path|``, a choice's ``path``.
+    """
+    lay = layout_of(scn)
+    out: list[str] = []
+    for path, spec, nom in zip(lay.paths, lay.specs, lay.nominal):
+        if spec.dist == "uniform_rotation":
+            out += [f"{path}:u{i}" for i in (1, 2, 3)]
+        elif spec.dist == "uniform_direction":
+            out += [f"{path}:direction_u1", f"{path}:direction_u2"]
+            out += [f"|{path}|"] * _magnitude_dims(spec.magnitude)
+        elif spec.dist == "choice":
+            out.append(path)
+        else:
+            out += component_names(path, nom.shape)
+    return out

@@ -94,3 +94,14 @@ def test_bad_dispersions_are_rejected_with_file_line_and_exit_2(tmp_path):
     line_rho = 1 + next(i for i, s in enumerate(lines) if "truth_initial_state.rho:" in s)
     assert any(f"bad.yaml:{line_rho}: dispersions.truth_initial_state.rho: unknown" in e and "rho_m" in e for e in err)
     assert any("dispersions.target.inertia_kgm2: can produce an invalid scenario" in e and "triangle" in e for e in err)
+
+
+def test_report_of_a_dispersed_run_has_the_sensitivity_section(runs):
+    from stereopose_mc.outputs.report import build_run_report
+
+    root, _, _ = runs
+    html = build_run_report(root / "a").read_text()
+    assert "Sensitivity: what drives the error" in html and "the three strongest drivers" in html
+    table = pd.read_csv(root / "a" / "sensitivity.csv")
+    assert {"e_rho", "diverged"} & set(table["metric"]) and "camera.baseline_m" in set(table["parameter"])
+    assert (root / "a" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
