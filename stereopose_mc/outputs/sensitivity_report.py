@@ -88,6 +88,8 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
     if res is None:
         return body + ["<p>No dispersed scalar varies in this run.</p>"], []
     rundir.atomic_write_text(run_dir / "sensitivity.csv", res.table.to_csv(index=False, float_format="%.6g"))
+    if res.table.empty:
+        return body + [f"<p>Too few converged, valid trials for any correlation ({res.invalid} invalid draws).</p>"], []
     n_pairs = res.table.groupby("filter").size().max() if len(res.table) else 0
     body.append(
         "<p>For each filter, metric and dispersed scalar: Spearman's rank correlation of the scalar with the "

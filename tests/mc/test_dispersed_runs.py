@@ -18,13 +18,13 @@ DISP = {
     "truth_initial_state.rho_m": {"dist": "normal", "std": [1.0, 3.0, 1.0]},
     "truth_initial_state.omega_degps": {"dist": "uniform", "low": -0.3, "high": 0.3},
     "target.inertia_kgm2": {"dist": "uniform", "low": [0.8, 0.9, 1.0], "high": [1.0, 1.1, 1.3], "mode": "replace"},
-    "leader.orbit.a_km": {"dist": "normal", "std": 600.0, "applies_to": "both"},  # some draws are invalid
+    "leader.orbit.a_km": {"dist": "normal", "std": 350.0, "applies_to": "both"},  # some draws are invalid
     "camera.baseline_m": {"dist": "normal", "std": 0.01},
 }
 
 
 def text(**over) -> str:
-    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 15.0, "error_window_start_s": 5.0}, trials=8, **over)
+    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 15.0, "error_window_start_s": 5.0}, trials=12, **over)
     d["dispersions"] = DISP
     return yaml.safe_dump(d, sort_keys=False)
 
