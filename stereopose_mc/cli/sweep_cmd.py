@@ -15,8 +15,8 @@ from .app import app, fail
 
 @app.command()
 def sweep(
-    scenario: Path = typer.Argument(..., help="scenario YAML file"),
-    sets: list[str] = typer.Option(..., "--set", help="PATH=V1,V2,... (repeat for a grid); PATH like a.b or a.b[1]"),
+    scenario: Path = typer.Argument(..., help="scenario YAML file, or a sweep file (configs/sweeps/*.yaml)"),
+    sets: Optional[list[str]] = typer.Option(None, "--set", help="PATH=V1,V2,... (repeat for a grid); PATH like a.b or a.b[1]"),
     out: Path = typer.Option(..., "--out", help="sweep directory (one run directory per point below it)"),
     zipped: bool = typer.Option(False, "--zip", help="pair the --set lists (same length) instead of a grid"),
     trials: Optional[int] = typer.Option(None, "--trials", min=1, help="trials per point (default: the scenario's)"),
@@ -41,6 +41,16 @@ def sweep(
             typer.echo(f"[{i + 1}/{n}] {p.name} ({vals}): " + {"done": "finished, skipped", "run": "running",
                                                                 "resume": "resuming"}[what])  # fmt: skip
 
+    sets = list(sets or [])
+    if sw.is_sweep_file(scenario):
+        try:
+            scenario, file_sets, file_zip, file_trials = sw.load_sweep_file(scenario)
+        except sw.SweepError as exc:
+            fail(str(exc))
+        given = {s.split("=", 1)[0].strip() for s in sets}
+        sets = [s for s in file_sets if s.split("=", 1)[0] not in given] + sets  # --set overrides the file's
+        zipped = zipped or file_zip
+        trials = trials if trials is not None else file_trials
     opts = engine.RunOptions(jobs=jobs, chunk_size=chunk_size, timeseries=timeseries, command=list(sys.argv))
     try:
         res = sw.run_sweep(scenario, sets, out, zipped, trials, opts, on_point,

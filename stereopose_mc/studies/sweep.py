@@ -277,3 +277,40 @@ def summary(out: Path, quantiles: tuple[float, ...] = (10.0, 50.0, 90.0)) -> pd.
             rows.append(row)
     return pd.DataFrame(rows)
 
+
+
+def is_sweep_file(path: Path) -> bool:
+    """A YAML file whose top level has a ``sweep`` mapping (rather than a scenario)."""
+    try:
+        d = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(d, dict) and isinstance(d.get("sweep"), dict)
+
+
+def load_sweep_file(path: Path) -> tuple[Path, list[str], bool, int | None]:
+    """``sweep: {scenario, set: {PATH: [values]}, zip, trials}`` -> (scenario file, --set strings, zip, trials).
+
+    ``scenario`` is relative to the sweep file.
+    """
+    path = Path(path)
+    d = yaml.safe_load(path.read_text(encoding="utf-8"))["sweep"]
+    unknown = sorted(set(d) - {"scenario", "set", "zip", "trials"})
+    if unknown:
+        raise SweepError(f"{path}: sweep.{unknown[0]}: unknown key (expected scenario, set, zip, trials)")
+    if not isinstance(d.get("scenario"), str):
+        raise SweepError(f"{path}: sweep.scenario: required, the scenario file (relative to this file)")
+    sets = d.get("set")
+    if not isinstance(sets, dict) or not sets:
+        raise SweepError(f"{path}: sweep.set: required, a mapping of key paths to lists of values")
+    out = []
+    for k, v in sets.items():
+        if not isinstance(v, list) or not v:
+            raise SweepError(f"{path}: sweep.set.{k}: must be a non-empty list of values")
+        out.append(f"{k}=" + ",".join(json.dumps(x) for x in v))
+    trials = d.get("trials")
+    if trials is not None and (not isinstance(trials, int) or isinstance(trials, bool) or trials < 1):
+        raise SweepError(f"{path}: sweep.trials: must be an integer >= 1")
+    if not isinstance(d.get("zip", False), bool):
+        raise SweepError(f"{path}: sweep.zip: must be true or false")
+    return (path.parent / d["scenario"]), out, bool(d.get("zip", False)), trials

@@ -67,3 +67,15 @@ def test_zip_pairs_values():
     axes = [sw.Axis("a", [1, 2]), sw.Axis("b", [3, 4])]
     assert sw.points_of(axes, True) == [(1, 3), (2, 4)]
     assert sw.parse_set("x.y=[1,2],[3,4]").values == [[1, 2], [3, 4]]
+
+
+def test_bundled_sweep_file_expands_to_valid_points():
+    from scenarios import CONFIGS
+
+    f = CONFIGS / "sweeps" / "baseline-range.yaml"
+    assert sw.is_sweep_file(f) and not sw.is_sweep_file(CONFIGS / "caseB.yaml")
+    scenario, sets, zipped, trials = sw.load_sweep_file(f)
+    axes, points = sw.build_points(scenario, sets, zipped, trials)
+    assert [a.path for a in axes] == ["camera.baseline_m", "truth_initial_state.rho_m[1]"] and len(points) == 9
+    p = points[-1].scenario
+    assert p.camera.baseline_m == 2.0 and p.truth_initial_state.rho_m == [10.0, 120.0, 10.0] and p.trials == 50
