@@ -30,7 +30,6 @@ import pandas as pd
 
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import Scenario
-from ..core import state as st
 from ..sim import dispersions as sd
 from ..sim import measurements as meas
 from ..sim.dispersions import exact_measurements, noisy_measurements, truth_of
@@ -109,7 +108,3 @@ def with_columns(tdf: pd.DataFrame, disp: sd.TrialDispersions) -> pd.DataFrame:
     for name, v in disp.columns.items():
         extra[name] = v[pos]
     return pd.concat([tdf.reset_index(drop=True), pd.DataFrame(extra)], axis=1)
-
-
-def n_state(scn: Scenario) -> int:
-    return st.size(len(scn.target.feature_points_m))

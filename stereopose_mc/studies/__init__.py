@@ -4,5 +4,8 @@
 - :mod:`.coupled`: the simplified coupled feature-point model (the package's) and the fully
   coupled Segal-Gurfil model (thesis eqs. 2.40-2.42, misprints corrected), batched;
 - :mod:`.dynamics_study`: the studies of thesis section 2.5 as figures and tables
-  (``spmc dynamics``).
+  (``spmc dynamics``);
+- :mod:`.sensitivity`: what drives the error in a dispersed campaign (Spearman, rank-biserial,
+  SALib Sobol indices; ``spmc report``);
+- :mod:`.sweep`: grids of whole campaigns (``spmc sweep``).
 """
