@@ -105,3 +105,40 @@ def test_report_of_a_dispersed_run_has_the_sensitivity_section(runs):
     table = pd.read_csv(root / "a" / "sensitivity.csv")
     assert {"e_rho", "diverged"} & set(table["metric"]) and "camera.baseline_m" in set(table["parameter"])
     assert (root / "a" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
+
+
+def _chunk(disp: dict, baseline: float = 1.0):
+    from stereopose_mc.mc import dispersed
+
+    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 6.0, "error_window_start_s": 2.0}, trials=3,
+                      camera={"baseline_m": baseline})  # fmt: skip
+    d["dispersions"] = disp
+    scn = load_scenario_text(yaml.safe_dump(d, sort_keys=False), "<test>")
+    p = engine.prepare(scn)
+    res, _ = dispersed.run_chunk(scn, [0, 1, 2], p.setup, p.bounds)
+    return res.runs[0].errors
+
+
+def test_applies_to_selects_what_the_filter_model_sees():
+    """A baseline of 1.2 m: dispersed with applies_to both == nominal 1.2 m; truth-only differs."""
+    import numpy as np
+
+    inert = {"leader.orbit.raan_deg": {"dist": "choice", "values": [0.0]}}  # no effect on the dynamics
+    both = _chunk({**inert, "camera.baseline_m": {"dist": "choice", "values": [1.2], "applies_to": "both"}})
+    nominal = _chunk(inert, baseline=1.2)
+    truth_only = _chunk({**inert, "camera.baseline_m": {"dist": "choice", "values": [1.2]}})
+    assert np.array_equal(both, nominal, equal_nan=True)
+    assert not np.allclose(truth_only[:, 1:], nominal[:, 1:], equal_nan=True)
+
+
+def test_applies_to_centres_the_initial_estimate():
+    """State keys: both -> initial error is the N(0, P0) draw alone (as without dispersion); truth -> plus the offset."""
+    import numpy as np
+
+    inert = {"leader.orbit.raan_deg": {"dist": "choice", "values": [0.0]}}
+    shift = {"dist": "choice", "values": [[3.0, 4.0, 0.0]]}  # |offset| = 5 m
+    nominal = _chunk(inert)[:, 0, 0]
+    both = _chunk({**inert, "truth_initial_state.rho_m": {**shift, "mode": "add", "applies_to": "both"}})[:, 0, 0]
+    truth = _chunk({**inert, "truth_initial_state.rho_m": {**shift, "mode": "add"}})[:, 0, 0]
+    assert np.allclose(both, nominal, rtol=1e-12)
+    assert np.all(np.abs(truth - 5.0) <= nominal + 1e-9) and not np.allclose(truth, nominal)
