@@ -17,8 +17,19 @@ from .app import app, fail, load_or_exit
 def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")) -> None:
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
     (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
+    from ..studies import sweep as sw
+
     problems: list[str] = []
     for f in files:
+        if sw.is_sweep_file(f):  # a sweep file: every point of its grid must be a valid scenario
+            try:
+                sw.build_points(*sw.load_sweep_file(f))
+                typer.echo(f"ok: {f}")
+            except sw.SweepError as exc:
+                problems.append(str(exc))
+            except ScenarioError as exc:
+                problems.extend(str(p) for p in exc.problems)
+            continue
         try:
             load_scenario(f)
             typer.echo(f"ok: {f}")

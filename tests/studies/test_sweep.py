@@ -79,3 +79,14 @@ def test_bundled_sweep_file_expands_to_valid_points():
     assert [a.path for a in axes] == ["camera.baseline_m", "truth_initial_state.rho_m[1]"] and len(points) == 9
     p = points[-1].scenario
     assert p.camera.baseline_m == 2.0 and p.truth_initial_state.rho_m == [10.0, 120.0, 10.0] and p.trials == 50
+
+
+def test_validate_checks_every_point_of_a_sweep_file(tmp_path):
+    from scenarios import CONFIGS
+
+    r = CliRunner().invoke(app, ["validate", str(CONFIGS / "sweeps" / "baseline-range.yaml")])
+    assert r.exit_code == 0 and r.output.startswith("ok:")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"sweep:\n  scenario: {CONFIGS / 'caseB.yaml'}\n  set: {{camera.baseline_m: [1.0, 0.0]}}\n")
+    r = CliRunner().invoke(app, ["validate", str(bad)])
+    assert r.exit_code == 2 and "camera.baseline_m=0.0" in r.output
