@@ -84,7 +84,10 @@ def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None
         truth = simulate_truth(setup)
     exact = meas.noise_free(setup, truth)
     if noise:
-        draws = meas.draw_trials(root, [0 if trial is None else trial], setup.x0.size, setup.steps, setup.n_points)
+        stream = 0 if trial is None else trial
+        if dispersed_values:
+            stream = int(sd.noise_streams(scenario, [trial])[0])
+        draws = meas.draw_trials(root, [stream], setup.x0.size, setup.steps, setup.n_points)
         noisy = meas.noisy(setup, exact, draws)
         m = meas.Measurements(y=noisy.y[0], alpha=noisy.alpha[0], visible=exact.visible)
     else:

@@ -10,8 +10,9 @@ For a scenario with ``dispersions``, trial ``j``:
 2. gets its truth: all valid trials of the chunk are propagated together
    (``sim.truth.simulate_truth_batch``, trial axis first);
 3. draws its noise and initial-estimate error from its usual stream ``spawn_key=(j,)``
-   (the same numbers as without dispersions) on its exact measurements, made with the
-   truth's (dispersed) camera and noise levels;
+   (the same numbers as without dispersions; in ``sobol`` campaigns the stream of its
+   Saltelli block, ``sim.dispersions.noise_streams``) on its exact measurements, made with
+   the truth's (dispersed) camera and noise levels;
 4. runs every filter with the filter's model: the nominal values, or the dispersed
    ones for keys with ``applies_to: both``. The initial estimate is centred on the
    nominal state, or on the dispersed true value for state keys
@@ -75,7 +76,8 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -
         tsetups = [setup_of(disp.truth[i]) for i in rows]
         truth = truth_of(tsetups, setup.times, setup.truth_rtol)
         exact = exact_measurements(tsetups, truth)
-        draws = meas.draw_trials(scn.seed, trials[rows], setup.x0.size, setup.steps, setup.n_points)
+        draws = meas.draw_trials(scn.seed, sd.noise_streams(scn, trials[rows]), setup.x0.size, setup.steps,
+                                 setup.n_points)  # fmt: skip
         noisy = noisy_measurements(tsetups, exact, draws)
         fsetups = [setup_of(disp.filter_model[i]) for i in rows]
         x0_hat = meas.initial_estimates(setup, draws, np.stack([s.x0 for s in fsetups]))

@@ -46,6 +46,10 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         row0 = co.trials_df.iloc[0]
         vals = ", ".join(f"{k}={row0[k]:.6g} {u if u != '-' else ''}".rstrip() for k, u in units(scn).items() if k in row0)
         lines.append(f"  dispersed ({scn.dispersions.sampling}): {vals}")
+        if scn.dispersions.sampling == "sobol":
+            from ..sim.dispersions import noise_streams
+
+            lines.append(f"  noise stream of its Saltelli block: spawn key ({int(noise_streams(scn, [trial])[0])},)")
     for _, row in co.trials_df.iterrows():
         errs = ", ".join(f"{n}={row[n]:.4g}" for n in ERROR_NAMES)
         status = "diverged at step %d (%s)" % (row["diverged_step"], row["diverged_reason"]) if row["diverged"] else "ok"

@@ -148,6 +148,24 @@ def unit_plan(scn: Scenario, trials: Array, dims: int) -> Array:
     return np.clip(u, _EPS, 1.0 - _EPS)
 
 
+def noise_streams(scn: Scenario, trials) -> Array:
+    """The noise / initial-error stream of each trial: its own index, except in ``sobol`` campaigns.
+
+    Saltelli's estimators need the output to be a function of the factors; the trials'
+    noise makes it random. In a ``sobol`` campaign the rows of Saltelli block ``b``
+    (``A_b, AB_b^1 .. AB_b^D, B_b``: trials ``b (D + 2)`` to ``b (D + 2) + D + 1``) therefore
+    share their noise: ``A_b`` and every ``AB_b^i`` use stream ``2 b``, ``B_b`` stream
+    ``2 b + 1``. The noise then acts as one more independent input of the design (part of
+    ``A`` and ``B``), and the indices of the dispersed factors stay unbiased.
+    """
+    trials = np.asarray(trials, dtype=np.int64)
+    if scn.dispersions is None or scn.dispersions.sampling != "sobol":
+        return trials
+    D = layout_of(scn).dims
+    b, r = np.divmod(trials, D + 2)
+    return 2 * b + (r == D + 1)
+
+
 def saltelli_blocks(trials: int, dims: int) -> int:
     """``N``: base points of the Saltelli design covering ``trials`` rows."""
     return max(1, -(-trials // (dims + 2)))

@@ -12,9 +12,9 @@ after its key path):
   scalar between diverged and converged trials (``scipy.stats.mannwhitneyu``), positive
   when diverged trials have larger values;
 - for ``sampling: sobol`` campaigns, first-order and total Sobol indices of every input
-  factor (``SALib.analyze.sobol``, on the complete Saltelli blocks), for each metric
-  whose values are finite on every trial of those blocks (the divergence indicator
-  always is).
+  factor (``SALib.analyze.sobol``, on the complete Saltelli blocks); for a metric with
+  diverged trials in the design, of its rank with the diverged trials tied at the worst
+  (``rank(e_rho)``: the "all trials, diverged = +inf" view of the percentile tables).
 
 Invalid draws (``invalid``) are left out of every statistic and counted.
 """
@@ -135,17 +135,21 @@ def sobol_indices(trials: pd.DataFrame, scn: Scenario) -> tuple[pd.DataFrame | N
             continue
         for metric in METRICS:
             y = g["diverged"].to_numpy(float) if metric == DIVERGED else g[metric].to_numpy(float)
+            name_m = metric
             if not np.all(np.isfinite(y)):
-                notes.append(f"{label}: no Sobol indices for {metric} ({int((~np.isfinite(y)).sum())} trials "
-                             "diverged; see the divergence indices)")  # fmt: skip
-                continue
+                # the error's rank, diverged trials tied at the worst (as +inf in the "all" percentiles)
+                n_bad = int((~np.isfinite(y)).sum())
+                y = stats.rankdata(np.where(np.isfinite(y), y, np.inf)) / y.size
+                name_m = f"rank({metric})"
+                notes.append(f"{label}: {n_bad} trials of the design diverged: the Sobol indices of {metric} are "
+                             f"those of its rank with the diverged trials ranked worst ({name_m})")  # fmt: skip
             if np.ptp(y) == 0:
                 continue
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 si = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=scn.seed)
             for i, name in enumerate(names):
-                rows.append((label, metric, name, si["S1"][i], si["S1_conf"][i], si["ST"][i], si["ST_conf"][i]))
+                rows.append((label, name_m, name, si["S1"][i], si["S1_conf"][i], si["ST"][i], si["ST_conf"][i]))
     df = pd.DataFrame(rows, columns=["filter", "metric", "factor", "S1", "S1_conf", "ST", "ST_conf"])
     return (df if len(df) else None), notes
 
