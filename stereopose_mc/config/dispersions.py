@@ -105,8 +105,10 @@ def spec_problems(path: str, spec: DispersionSpec, nominal: Any) -> list[str]:
         if not _broadcasts(v, shape):
             out.append(f"choice value {v!r} does not fit the value's shape {list(shape)}")
     if spec.low is not None and spec.high is not None and _broadcasts(spec.low, shape) and _broadcasts(spec.high, shape):
-        if np.any(np.asarray(spec.low, float) >= np.asarray(spec.high, float)):
-            out.append("low must be below high in every component")
+        if np.any(np.asarray(spec.low, float) > np.asarray(spec.high, float)):
+            out.append("low must not be above high in any component (low = high keeps a component fixed)")
+        elif spec.dist == "truncnormal" and np.any(np.asarray(spec.low, float) >= np.asarray(spec.high, float)):
+            out.append("truncnormal needs low below high in every component")
     if spec.std is not None and np.any(np.asarray(spec.std, float) < 0):
         out.append("std must be >= 0")
     if spec.sigma is not None and np.any(np.asarray(spec.sigma, float) < 0):

@@ -16,7 +16,8 @@ after its key path):
   diverged trials in the design, of its rank with the diverged trials tied at the worst
   (``rank(e_rho)``: the "all trials, diverged = +inf" view of the percentile tables).
 
-Invalid draws (``invalid``) are left out of every statistic and counted.
+Invalid draws (``invalid``) are left out of every statistic and counted. In a ``sobol``
+campaign the correlations use only the design's independent rows (A and B of each block).
 """
 
 from __future__ import annotations
@@ -161,8 +162,16 @@ def analyze(trials: pd.DataFrame, scn: Scenario) -> Sensitivity | None:
         return None
     invalid = trials["invalid"].to_numpy(bool) if "invalid" in trials else np.zeros(len(trials), bool)
     valid = trials[~invalid]
-    out = Sensitivity(correlations(valid, params), invalid=int(trials.loc[invalid, "trial"].nunique()))
-    if scn.dispersions is not None and scn.dispersions.sampling == "sobol":
-        out.sobol, notes = sobol_indices(trials, scn)
-        out.notes += notes
+    sobol = scn.dispersions is not None and scn.dispersions.sampling == "sobol"
+    notes = []
+    if sobol:  # correlations on the independent rows only: A and B of each Saltelli block
+        D2 = len(sd.factor_names(scn)) + 2
+        r = valid["trial"].to_numpy() % D2
+        valid = valid[(r == 0) | (r == D2 - 1)]
+        notes.append(f"Sobol design: the correlations use its {valid['trial'].nunique()} independent rows (A and B "
+                     f"of each Saltelli block); the AB rows share all but one coordinate and the noise with A")
+    out = Sensitivity(correlations(valid, params), invalid=int(trials.loc[invalid, "trial"].nunique()), notes=notes)
+    if sobol:
+        out.sobol, more = sobol_indices(trials, scn)
+        out.notes += more
     return out
