@@ -17,7 +17,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE_B = ROOT / "configs" / "caseB.yaml"
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed")
 COLUMNS = ("section", "filter", "measure", "value", "unit", "target", "status", "note")
 
 

@@ -465,6 +465,54 @@ def baseline(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     return rows
 
 
+# ----------------------------------------------------------------------------- dispersed truth
+
+TARGET_TRUTH_SHARE = 0.20  # the per-trial truth's share of a dispersed campaign (issue 11)
+DISPERSED_TRIALS = {"full": 50, "quick": 10}  # one chunk
+
+
+def dispersed_truth(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
+    """Share of the per-trial truth (draws, validation, batched DOP853, exact measurements) in a dispersed chunk.
+
+    The benchmark scenario with configs/mission-debris.yaml's ``dispersions`` block; one chunk,
+    both filters, in-process (``mc.dispersed.run_chunk``).
+    """
+    import yaml
+
+    from stereopose_mc.config.resolve import setup_of
+    from stereopose_mc.mc import dispersed
+    from stereopose_mc.sim import dispersions as sd
+
+    d = scenario_dict(cfg)
+    d["dispersions"] = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "mission-debris.yaml")
+                                      .read_text())["dispersions"]  # fmt: skip
+    prep = prepare(d)
+    B = DISPERSED_TRIALS.get(cfg.mode, 10)
+    trials = np.arange(B)
+    log(f"dispersed: one chunk of {B} trials")
+
+    def truth_part():
+        draw = sd.draw(prep.scenario, trials)
+        setups = [setup_of(s) for s in draw.truth if s is not None]
+        return sd.exact_measurements(setups, sd.truth_of(setups, prep.setup.times, prep.setup.truth_rtol))
+
+    with blas_limit(cfg.inproc_threads):
+        t_truth = timed(truth_part, cfg.repeats, cfg.cheap_s)
+        t_all = timed(lambda: dispersed.run_chunk(prep.scenario, trials, prep.setup, prep.bounds), cfg.repeats,
+                      cfg.cheap_s)  # fmt: skip
+    share = t_truth.median_s / t_all.median_s
+    filters = "+".join(f.label for f in prep.filters)
+    return [
+        Row("dispersed", filters, f"truth per trial, chunk of {B}", 1e3 * t_truth.median_s / B, "ms/trial",
+            note="draw + validate + setups + batched DOP853 + exact measurements"),
+        Row("dispersed", filters, f"campaign per trial, chunk of {B}", 1e3 * t_all.median_s / B, "ms/trial",
+            note="mc.dispersed.run_chunk, every filter"),
+        Row("dispersed", filters, "truth share of a dispersed campaign", 100 * share, "%",
+            target=f"<= {100 * TARGET_TRUTH_SHARE:g} %", status=judge(share, TARGET_TRUTH_SHARE, "max", cfg.mode != "full"),
+            note=f"medians of {t_truth.n} and {t_all.n}"),
+    ]  # fmt: skip
+
+
 SECTION_FUNCS: dict[str, Callable[[BenchConfig, Path, dict], list[Row]]] = {
     "campaign": campaign,
     "chunk": chunk_cost,
@@ -472,4 +520,5 @@ SECTION_FUNCS: dict[str, Callable[[BenchConfig, Path, dict], list[Row]]] = {
     "scaling": scaling,
     "memory": memory,
     "baseline": baseline,
+    "dispersed": dispersed_truth,
 }

@@ -98,6 +98,8 @@ MEANINGS = {
     "divergence.k": "Same for the error of k1 or k2.",
     "divergence.nis_window_steps": "Steps over which the NIS is averaged for the lost-filter test.",
     "divergence.nis_start_s": "Time from which the lost-filter (NIS) test applies; the first updates are far from linear.",
+    "dispersions": "Truth dispersions: `sampling` (`random` \\| `sobol` \\| `lhs`) and one entry per dispersed key path "
+    "(`{dist: ..., mode: ..., applies_to: ...}`); null = every trial shares the nominal truth. See \"Dispersions\" below.",
 }  # fmt: skip
 
 FILTER_MEANINGS = {

@@ -9,7 +9,8 @@ import sys
 
 import typer
 
-from . import dynamics_cmd, inertia_cmd, observability_cmd, report_cmds, run_cmds, scenario_cmds  # noqa: F401  (registers commands)
+from . import dynamics_cmd, inertia_cmd, observability_cmd, report_cmds, run_cmds, scenario_cmds  # noqa: F401
+from . import sweep_cmd  # noqa: F401  (each module registers its commands)
 from .app import app
 
 

@@ -28,6 +28,15 @@ def report(
     written: list[Path] = []
     problems: list[str] = []
     for p in paths:
+        if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
+            from ..outputs.sweep_report import build_sweep_report
+            from ..studies.sweep import SweepError
+
+            try:
+                written.append(build_sweep_report(p))
+            except (SweepError, rep.ReportError) as exc:
+                problems += exc.lines() if isinstance(exc, rep.ReportError) else [str(exc)]
+            continue
         try:
             runs, is_folder = rep.discover(p)
         except rep.ReportError as exc:

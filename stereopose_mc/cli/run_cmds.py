@@ -89,6 +89,10 @@ def run(
             if nd:
                 typer.echo("all trials (diverged = inf):")
                 typer.echo(tables.format_table(pt, label, "all"))
+        if "invalid" in res.trials and res.trials["invalid"].any():
+            bad = res.trials.loc[res.trials["invalid"], "trial"].nunique()
+            typer.echo(f"\n{bad} trial(s) drew an invalid scenario (counted as diverged at step 0; "
+                       "column 'invalid', reason 'invalid draw: ...' in trials.parquet)")  # fmt: skip
         typer.echo(f"\n{res.trials['trial'].nunique()} trials in {res.wall_s:.1f} s -> {out}")
 
 

@@ -17,8 +17,19 @@ from .app import app, fail, load_or_exit
 def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")) -> None:
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
     (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
+    from ..studies import sweep as sw
+
     problems: list[str] = []
     for f in files:
+        if sw.is_sweep_file(f):  # a sweep file: every point of its grid must be a valid scenario
+            try:
+                sw.build_points(*sw.load_sweep_file(f))
+                typer.echo(f"ok: {f}")
+            except sw.SweepError as exc:
+                problems.append(str(exc))
+            except ScenarioError as exc:
+                problems.extend(str(p) for p in exc.problems)
+            continue
         try:
             load_scenario(f)
             typer.echo(f"ok: {f}")
@@ -35,6 +46,7 @@ def simulate(
     no_noise: bool = typer.Option(False, "--no-noise", help="write the exact measurements"),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
+    trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
     from ..outputs.simulation import simulate as run_simulate
@@ -46,8 +58,8 @@ def simulate(
     if out.exists() and any(out.iterdir()) and not overwrite:
         fail(f"{out} already exists and is not empty; pass --overwrite to replace it")
     try:
-        s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv)
-    except RunDirError as exc:
+        s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv, trial=trial)
+    except (RunDirError, ValueError) as exc:
         fail(str(exc))
     typer.echo(
         f"{scn.name}: {s.steps} steps, {s.features} features, range {s.range_min:.2f}-{s.range_max:.2f} m, "

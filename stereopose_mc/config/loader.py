@@ -419,7 +419,10 @@ def _semantic_checks(data: Any) -> list[tuple[Loc, str]]:
     """Checks across keys that pydantic's field validators cannot see; run on the raw data."""
     if not isinstance(data, dict):
         return []
-    return _points_behind(data) + _filter_R_positive(data) + _duplicate_points(data) + _fits_in_memory(data)
+    from .dispersions import check as dispersion_checks
+
+    return (_points_behind(data) + _filter_R_positive(data) + _duplicate_points(data) + _fits_in_memory(data)
+            + dispersion_checks(data))
 
 
 # ----------------------------------------------------------------------- loading

@@ -397,6 +397,78 @@ class TruthModelConfig(_Model):
     gravity_gradient_torque: bool = Field(default=False, description="gravity-gradient torque on the target")
 
 
+# ----------------------------------------------------------------- dispersions (issue 11)
+
+Number = Annotated[float, Field(allow_inf_nan=False)]
+Param = Union[Number, list[Number], list[list[Number]]]
+DIST_NAMES = ("normal", "truncnormal", "uniform", "lognormal", "choice", "uniform_rotation", "uniform_direction")
+
+
+class MagnitudeSpec(_Model):
+    """The magnitude distribution of ``uniform_direction`` (a scalar draw)."""
+
+    dist: Literal["normal", "truncnormal", "uniform", "lognormal", "choice"]
+    mean: float = 0.0
+    std: NonNeg | None = None
+    low: float | None = None
+    high: float | None = None
+    sigma: NonNeg | None = None
+    median: Pos = 1.0
+    values: list[float] | None = None
+    weights: list[NonNeg] | None = None
+
+
+class DispersionSpec(_Model):
+    """How trial j draws one scenario value (docs/scenarios.md, "Dispersions")."""
+
+    dist: Literal["normal", "truncnormal", "uniform", "lognormal", "choice", "uniform_rotation", "uniform_direction"]
+    mode: Literal["add", "scale", "replace"] | None = Field(
+        default=None,
+        description="add: nominal + draw (default for normal, truncnormal, uniform); scale: nominal x draw "
+        "(default for lognormal); replace: the draw (default for choice, uniform_rotation, uniform_direction)",
+    )
+    applies_to: Literal["truth", "both"] = "truth"
+    mean: Param = 0.0
+    std: Param | None = None
+    low: Param | None = None
+    high: Param | None = None
+    sigma: Param | None = None
+    median: Param = 1.0
+    values: list[Param] | None = None
+    weights: list[NonNeg] | None = None
+    magnitude: MagnitudeSpec | Pos | None = None
+
+    @model_validator(mode="after")
+    def _parameters(self):
+        need = {"normal": ("std",), "truncnormal": ("std", "low", "high"), "uniform": ("low", "high"),
+                "lognormal": ("sigma",), "choice": ("values",), "uniform_direction": ("magnitude",)}  # fmt: skip
+        missing = [k for k in need.get(self.dist, ()) if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"dist {self.dist} needs {', '.join(missing)}")
+        if self.dist in ("uniform_rotation", "uniform_direction") and self.mode == "scale":
+            raise ValueError(f"dist {self.dist} supports mode add or replace, not scale")
+        if self.weights is not None and (self.values is None or len(self.weights) != len(self.values)):
+            raise ValueError("weights needs one weight per entry of values")
+        if self.weights is not None and sum(self.weights) <= 0:
+            raise ValueError("weights must not all be zero")
+        return self
+
+
+class DispersionsConfig(BaseModel):
+    """``dispersions:``: ``sampling`` plus one ``DispersionSpec`` per dotted scenario path."""
+
+    model_config = ConfigDict(extra="allow", validate_default=True, allow_inf_nan=False)
+    __pydantic_extra__: dict[str, DispersionSpec] = Field(init=False)
+
+    sampling: Literal["random", "sobol", "lhs"] = Field(
+        default="random", description="how the unit-cube coordinates of all dispersed scalars are drawn"
+    )
+
+    @property
+    def specs(self) -> dict[str, DispersionSpec]:
+        return dict(self.__pydantic_extra__ or {})
+
+
 class Scenario(_Model):
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
     description: str = ""
@@ -419,6 +491,7 @@ class Scenario(_Model):
         description="`{j2, drag, gravity_gradient_torque}`: the truth is propagated in the inertial frame with these "
         "and converted to the leader's LVLH; null = the thesis's Keplerian, torque-free relative model",
     )
+    dispersions: DispersionsConfig | None = None
 
     @model_validator(mode="after")
     def _pixel_noise_needs_pixels(self):
@@ -432,6 +505,9 @@ class Scenario(_Model):
                 r = f.measurement_noise
                 if r.image_sigma_px is not None or r.flow_sigma_pxps is not None:
                     raise ValueError(f"filter {f.label}: measurement_noise in pixels needs camera.resolution_px")
+        if self.truth_model is not None and self.dispersions is not None and self.dispersions.specs:
+            raise ValueError("dispersions with a perturbed truth_model are not supported yet: the dispersed "
+                             "(batched) truth is the Keplerian relative model; drop one of the two")
         return self
 
     @field_validator("filters")

@@ -40,11 +40,13 @@ from typing import NamedTuple
 
 from ..config.budget import memory_problem
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
+from ..config.dispersions import units as dispersion_units
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
 from ..outputs import integrity, rundir, runlock, tables
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
+from . import dispersed
 from .trial import Bounds, run_chunk
 
 TIMESERIES_MODES = ("none", "summary", "full")
@@ -59,6 +61,8 @@ def scenario_hash(scn: Scenario) -> str:
     """SHA-256 of the scenario's canonical JSON, without the trial count."""
     d = scn.model_dump(mode="json")
     d.pop("trials", None)
+    if d.get("dispersions") is None:  # scenarios without dispersions keep their hash
+        d.pop("dispersions", None)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
@@ -111,8 +115,13 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> Ch
     """
     with threadpool_limits(limits=1):
         scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
-        res = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds)
+        if dispersed.has_dispersions(scn):
+            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds)
+        else:
+            res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds), None
     tdf = tables.trials_frame(res, truth.t, setup.window_start, scn.seed)
+    if disp is not None:
+        tdf = dispersed.with_columns(tdf, disp)
     ts = None
     if timeseries != "none":
         keep = None if timeseries == "full" else (np.asarray(trials) < SUMMARY_TRIALS)
@@ -300,7 +309,8 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     trials = fsort(trials).sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
     if spec is not None:
         integrity.check_trials_table(trials, spec)
-    _write_table(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"))
+    rundir.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"),
+                         units={**tables.COLUMN_UNITS, **dispersion_units(scn)})
     files = sorted((out / "chunks").glob("timing-*.parquet"))
     if files:
         df = fsort(pd.concat([pd.read_parquet(f) for f in files], ignore_index=True))

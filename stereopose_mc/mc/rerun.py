@@ -42,6 +42,16 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
     if tp.is_file():
         stored = pd.read_parquet(tp)
         stored = stored[stored["trial"] == trial].reset_index(drop=True)
+    if scn.dispersions is not None and scn.dispersions.specs:
+        from ..config.dispersions import units
+
+        row0 = co.trials_df.iloc[0]
+        vals = ", ".join(f"{k}={row0[k]:.6g} {u if u != '-' else ''}".rstrip() for k, u in units(scn).items() if k in row0)
+        lines.append(f"  dispersed ({scn.dispersions.sampling}): {vals}")
+        if scn.dispersions.sampling == "sobol":
+            from ..sim.dispersions import noise_streams
+
+            lines.append(f"  noise stream of its Saltelli block: spawn key ({int(noise_streams(scn, [trial])[0])},)")
     for _, row in co.trials_df.iterrows():
         errs = ", ".join(f"{n}={row[n]:.4g}" for n in ERROR_NAMES)
         status = "diverged at step %d (%s)" % (row["diverged_step"], row["diverged_reason"]) if row["diverged"] else "ok"

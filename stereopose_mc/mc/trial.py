@@ -164,8 +164,8 @@ def run_filter(
     reasons = [""] * B
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
-    err[:, 0] = errors(x, truth.x[0])
-    nees[:, 0] = _nees(x, P, truth.x[0])
+    err[:, 0] = errors(x, true_state(truth.x, 0, np.arange(B)))
+    nees[:, 0] = _nees(x, P, true_state(truth.x, 0, np.arange(B)))
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -196,7 +196,7 @@ def run_filter(
         )
         with np.errstate(all="ignore"):
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
-            e = errors(u.x, truth.x[k])
+            e = errors(u.x, true_state(truth.x, k, active))
             bad = _check(u.x, u.P, e, bounds)
         bad = [f or b for f, b in zip(failed, bad)]
         x[active], P[active] = u.x, u.P
@@ -210,7 +210,7 @@ def run_filter(
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
-                nees[active, k] = _nees(u.x, u.P, truth.x[k])
+                nees[active, k] = _nees(u.x, u.P, true_state(truth.x, k, active))
             except np.linalg.LinAlgError:
                 pass
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
@@ -244,6 +244,11 @@ def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Arra
     used = (dof - dof % channels) // channels  # the pseudo rows (3 < channels) are the remainder
     offered = used + gated
     return np.all((offered > 0) & (gated >= fraction * offered), axis=-1)
+
+
+def true_state(x_true: Array, k: int, rows: Array) -> Array:
+    """The true state at step ``k`` of trials ``rows``: of the shared truth ``(K+1, n)`` or per trial ``(B, K+1, n)``."""
+    return x_true[k] if x_true.ndim == 2 else x_true[rows, k]
 
 
 def _omega_var(P: Array) -> Array:

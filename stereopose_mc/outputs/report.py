@@ -29,7 +29,7 @@ from .. import __version__
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
 from ..mc.trial import ERROR_NAMES
 from . import figures as figs
-from . import rundir, tables
+from . import rundir, sensitivity_report, tables
 from .summary import summarize
 from .tables import ERROR_LABELS
 
@@ -431,8 +431,8 @@ def results_summary_html(data: RunData, pt: pd.DataFrame) -> str:
             "consistent filter; see docs/outputs.md.</p>")  # fmt: skip
 
 
-def render_report(data: RunData, fs: figs.FigureSet) -> str:
-    """The report's HTML text."""
+def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = None) -> str:
+    """The report's HTML text; ``extra``: HTML blocks placed before the figures (the sensitivity section)."""
     pt = tables.percentile_table(data.trials, data.percentiles)
     case = thesis_case(data.name)
     types = data.filter_types
@@ -495,6 +495,7 @@ def render_report(data: RunData, fs: figs.FigureSet) -> str:
     else:
         body.append("<p>No timing.parquet in this run.</p>")
 
+    body += extra or []
     body.append("<h2>Figures</h2>")
     for f in fs.figures:
         body.append(_figure_html(f, data.path))
@@ -523,8 +524,10 @@ def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = Non
                             filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
                             window_start=data.window_start, percentiles=data.percentiles,
                             progress=progress)  # fmt: skip
+    sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters)
+    fs.figures.extend(sens_figs)
     out = data.path / "report.html"
-    rundir.atomic_write_text(out, render_report(data, fs))
+    rundir.atomic_write_text(out, render_report(data, fs, sens_html))
     return out
 
 

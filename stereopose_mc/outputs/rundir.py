@@ -113,7 +113,7 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None 
     and ``units`` in its fields' metadata.
 
     Written without pandas' index and with a fixed writer so that the same table gives
-    the same bytes.
+    the same bytes. ``units``: column -> unit, stored as the field metadata ``unit``.
     """
     table = pa.Table.from_pandas(df, preserve_index=False)
     meta = dict(table.schema.metadata or {})

@@ -70,25 +70,43 @@ class SimulateSummary:
 
 
 def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None = None,
-             overwrite: bool = False, command: list[str] | None = None) -> SimulateSummary:
+             overwrite: bool = False, command: list[str] | None = None, trial: int | None = None) -> SimulateSummary:
     """Write ``truth.parquet``, ``measurements.parquet``, ``config.yaml``, ``manifest.json``.
 
     The noise is trial 0's draw of the scenario's root seed (or ``seed``), the same
-    numbers trial 0 of ``spmc run`` sees.
+    numbers trial 0 of ``spmc run`` sees. With ``trial`` j: trial j's truth (its dispersed
+    values, if the scenario has dispersions) and noise, as in ``spmc run``.
     """
     start = now_iso()
-    setup = setup_of(scenario)
-    truth = simulate_truth(setup)
-    exact = meas.noise_free(setup, truth)
     root = scenario.seed if seed is None else seed
+    setup = setup_of(scenario)
+    dispersed_values: dict = {}
+    if trial is not None and scenario.dispersions is not None and scenario.dispersions.specs:
+        from ..sim import dispersions as sd
+
+        d = sd.draw(scenario.model_copy(update={"seed": root}), [trial])
+        if d.invalid[0]:
+            raise ValueError(f"trial {trial} is an invalid draw: {d.invalid[0]}")
+        dispersed_values = {k: float(v[0]) for k, v in d.columns.items()}
+        setup = setup_of(d.truth[0])
+        bt = sd.truth_of([setup], setup.times, setup.truth_rtol)
+        truth = Truth(t=bt.t, nu=bt.nu[0], nu_dot=bt.nu_dot[0], nu_ddot=bt.nu_ddot[0], x=bt.x[0], alpha=bt.alpha[0])
+    else:
+        truth = simulate_truth(setup)
+    exact = meas.noise_free(setup, truth)
     if noise:
-        draws = meas.draw_trials(root, [0], setup.x0.size, setup.steps, setup.n_points)
+        stream = 0 if trial is None else trial
+        if dispersed_values:
+            stream = int(sd.noise_streams(scenario, [trial])[0])
+        draws = meas.draw_trials(root, [stream], setup.x0.size, setup.steps, setup.n_points)
         noisy = meas.noisy(setup, exact, draws)
         m = meas.Measurements(y=noisy.y[0], alpha=noisy.alpha[0], visible=exact.visible)
     else:
         m = exact
     prepare_dir(out, overwrite)
     md = {"scenario": scenario.name, "schema_version": str(SCHEMA_VERSION), "seed": str(root), "noise": str(noise)}
+    if trial is not None:
+        md["trial"] = str(trial)
     tf = truth_frame(truth)
     for j, a in enumerate("xyz"):
         tf[f"alpha_meas_{a}"] = m.alpha[:, j]
@@ -98,6 +116,8 @@ def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None
     atomic_write_text(out / "config.yaml", yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
     manifest = base_manifest(command)
     manifest.update(kind="simulate", scenario=scenario.name, seed=root, noise=noise, start=start, end=now_iso())
+    if trial is not None:
+        manifest.update(trial=trial, dispersed_values=dispersed_values)
     write_json(out / "manifest.json", manifest)
     rng = np.linalg.norm(camera.feature_kinematics(truth.x)[0], axis=-1)
     return SimulateSummary(

@@ -117,8 +117,8 @@ def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None 
             d[name] = r.errors[sel, :, j].reshape(-1)
         d["nees"] = r.nees[sel].reshape(-1)
         d["nis"] = r.nis[sel].reshape(-1)
-        d["nis_dof"] = (np.tile(r.nis_dof.astype(np.int16), B) if r.dof is None
-                        else r.dof[sel].reshape(-1).astype(np.int16))  # fmt: skip
+        dof = r.nis_dof if r.dof is None else r.dof  # (K+1,) shared, or (B, K+1) per trial
+        d["nis_dof"] = (np.tile(dof, B) if dof.ndim == 1 else dof[sel].reshape(-1)).astype(np.int16)
         d["iterations"] = r.iterations[sel].reshape(-1).astype(np.int16)
         d["converged"] = r.converged[sel].reshape(-1)
         d["gated"] = (np.zeros(B * K1) if r.gated is None else r.gated[sel].reshape(-1)).astype(np.int16)

@@ -70,8 +70,9 @@ def apply_faults(sensor: SensorSetup, seed: int, trials, y: Array, exact: Array,
                  ) -> tuple[Array, Faults]:  # fmt: skip
     """Faulty measurements ``y (B, K+1, N, C)`` (a new array) and the faults.
 
-    ``y`` are the noisy measurements of the trials, ``exact (K+1, N, C)`` the noise-free
-    ones (``y - exact`` is the noise a ``uniform_image`` outlier keeps), ``visible
+    ``y`` are the noisy measurements of the trials, ``exact (K+1, N, C)`` (or per trial
+    ``(B, K+1, N, C)``) the noise-free ones (``y - exact`` is the noise a ``uniform_image``
+    outlier keeps), ``visible
     (K+1, N)`` the features in view (a ``swapped_feature`` outlier takes a visible one).
     """
     B, K1, N, C = y.shape
@@ -90,7 +91,7 @@ def apply_faults(sensor: SensorSetup, seed: int, trials, y: Array, exact: Array,
         fake[..., 0], fake[..., 1], fake[..., 2], fake[..., 3] = u_r, v, u_l, v
         if C > 8:
             fake[..., 8] = u_l - u_r
-        y[outlier] = fake[outlier] + (y0 - exact[None])[outlier]
+        y[outlier] = fake[outlier] + (y0 - (exact[None] if exact.ndim == 3 else exact))[outlier]
     else:
         for b, k, i in zip(*np.nonzero(outlier)):
             others = np.flatnonzero(visible[k])

@@ -87,9 +87,12 @@ def noisy(setup: Setup, exact: Measurements, draws: TrialDraws) -> Measurements:
     return Measurements(y=y, alpha=alpha, visible=exact.visible)
 
 
-def initial_estimates(setup: Setup, draws: TrialDraws) -> Array:
-    """``x_hat(0) ~ N(x_true(0), P0)`` with the quaternion renormalized, ``(B, n)``."""
-    x = setup.x0[None] + np.sqrt(setup.P0_diag) * draws.z0
+def initial_estimates(setup: Setup, draws: TrialDraws, x0: Array | None = None) -> Array:
+    """``x_hat(0) ~ N(x0, P0)`` with the quaternion renormalized, ``(B, n)``.
+
+    ``x0``: the centre, ``(n,)`` or per trial ``(B, n)``; default the true ``setup.x0``.
+    """
+    x = (setup.x0[None] if x0 is None else x0) + np.sqrt(setup.P0_diag) * draws.z0
     q = x[:, st.QUAT]
     x[:, st.QUAT] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return x

@@ -7,5 +7,8 @@
   (``spmc dynamics``);
 - :mod:`.observability`: Hermann-Krener rank test and the filter-state observability Gramian
   (``spmc observability``);
-- :mod:`.mass_properties`: mass properties of a closed mesh (``spmc inertia``).
+- :mod:`.mass_properties`: mass properties of a closed mesh (``spmc inertia``);
+- :mod:`.sensitivity`: what drives the error in a dispersed campaign (Spearman, rank-biserial,
+  SALib Sobol indices; ``spmc report``);
+- :mod:`.sweep`: grids of whole campaigns (``spmc sweep``).
 """

@@ -1,0 +1,70 @@
+"""``spmc sweep``: whole campaigns over a grid (or zipped list) of scenario values."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..config import ScenarioError
+from ..outputs.rundir import RunDirError
+from .app import app, fail
+
+
+@app.command()
+def sweep(
+    scenario: Path = typer.Argument(..., help="scenario YAML file, or a sweep file (configs/sweeps/*.yaml)"),
+    sets: Optional[list[str]] = typer.Option(None, "--set", help="PATH=V1,V2,... (repeat for a grid); PATH like a.b or a.b[1]"),
+    out: Path = typer.Option(..., "--out", help="sweep directory (one run directory per point below it)"),
+    zipped: bool = typer.Option(False, "--zip", help="pair the --set lists (same length) instead of a grid"),
+    trials: Optional[int] = typer.Option(None, "--trials", min=1, help="trials per point (default: the scenario's)"),
+    jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
+    chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
+    timeseries: str = typer.Option("summary", "--timeseries", help="none | summary | full (per point)"),
+    report: bool = typer.Option(True, "--report/--no-report", help="write the sweep report at the end"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
+) -> None:
+    """Run a campaign per point of a grid of scenario values into DIR; rerun the command to resume.
+
+    Writes DIR/sweep.json, one run directory per point, DIR/percentiles.csv (all points;
+    `spmc compare` takes two sweeps) and the sweep report (DIR/report.html, sweep.csv).
+    """
+    from ..mc import engine
+    from ..studies import sweep as sw
+    from .progress import progress_reporter
+
+    def on_point(i, n, p, what):
+        if not quiet:
+            vals = ", ".join(f"{k}={v}" for k, v in p.values.items())
+            typer.echo(f"[{i + 1}/{n}] {p.name} ({vals}): " + {"done": "finished, skipped", "run": "running",
+                                                                "resume": "resuming"}[what])  # fmt: skip
+
+    sets = list(sets or [])
+    if sw.is_sweep_file(scenario):
+        try:
+            scenario, file_sets, file_zip, file_trials = sw.load_sweep_file(scenario)
+        except sw.SweepError as exc:
+            fail(str(exc))
+        given = {s.split("=", 1)[0].strip() for s in sets}
+        sets = [s for s in file_sets if s.split("=", 1)[0] not in given] + sets  # --set overrides the file's
+        zipped = zipped or file_zip
+        trials = trials if trials is not None else file_trials
+    opts = engine.RunOptions(jobs=jobs, chunk_size=chunk_size, timeseries=timeseries, command=list(sys.argv))
+    try:
+        res = sw.run_sweep(scenario, sets, out, zipped, trials, opts, on_point,
+                           lambda p: progress_reporter(p.name, quiet))
+    except ScenarioError as exc:
+        fail([str(p) for p in exc.problems])
+    except (sw.SweepError, engine.RunError, RunDirError) as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        typer.echo("\ninterrupted: finished points and chunks are kept; rerun the same command to resume", err=True)
+        raise typer.Exit(130) from None
+    if report:
+        from ..outputs.sweep_report import build_sweep_report
+
+        typer.echo(str(build_sweep_report(out)))
+    if not quiet:
+        typer.echo(f"{len(res.points)} points ({len(res.ran)} run, {len(res.skipped)} already done) -> {out}")

@@ -1,0 +1,126 @@
+"""A chunk of dispersed trials: per-trial truth (batched), measurements, filters.
+
+For a scenario with ``dispersions``, trial ``j``:
+
+1. draws its dispersed values (``sim.dispersions``; its own dispersion stream or the
+   plan's row ``j``) and validates the dispersed scenario: an invalid draw (e.g. a
+   perigee below the ground or a feature behind the cameras) makes an *invalid trial*:
+   every filter's row is kept, marked ``diverged`` at step 0 with the reason
+   ``invalid draw: ...`` and ``invalid = True``;
+2. gets its truth: all valid trials of the chunk are propagated together
+   (``sim.truth.simulate_truth_batch``, trial axis first);
+3. draws its noise and initial-estimate error from its usual stream ``spawn_key=(j,)``
+   (the same numbers as without dispersions; in ``sobol`` campaigns the stream of its
+   Saltelli block, ``sim.dispersions.noise_streams``) on its exact measurements, made with
+   the truth's (dispersed) camera and noise levels;
+4. runs every filter with the filter's model: the nominal values, or the dispersed
+   ones for keys with ``applies_to: both``. The initial estimate is centred on the
+   nominal state, or on the dispersed true value for state keys
+   (``truth_initial_state.*``, ``target.*``) with ``applies_to: both``, plus the
+   ``N(0, P0)`` error. Trials whose filter models and visibility patterns agree run as
+   one batch (all of them, unless the camera, orbit or noise levels are dispersed with
+   ``applies_to: both``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+
+from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
+from ..config.schema import Scenario
+from ..sim import dispersions as sd
+from ..sim import measurements as meas
+from ..sim.dispersions import exact_measurements, noisy_measurements, truth_of
+from ..sim.truth import Truth
+from ..sim.faults import Faults, apply_faults
+from .trial import Bounds, ChunkResult, FilterRun, run_filter
+
+INVALID_PREFIX = "invalid draw: "
+
+
+def has_dispersions(scn: Scenario) -> bool:
+    return scn.dispersions is not None and bool(scn.dispersions.specs)
+
+
+def _empty_run(label: str, B: int, K1: int) -> FilterRun:
+    return FilterRun(label, np.full((B, K1, 6), np.nan), np.full((B, K1), np.nan), np.full((B, K1), np.nan),
+                     np.zeros((B, K1), int), np.zeros((B, K1), int), np.zeros((B, K1), bool), np.full(B, -1),
+                     [""] * B, dof=np.zeros((B, K1), int), gated=np.zeros((B, K1), np.int64))  # fmt: skip
+
+
+def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
+    for name in ("errors", "nees", "nis", "iterations", "converged", "diverged_step"):
+        getattr(dst, name)[rows] = getattr(src, name)
+    for r, reason in zip(rows, src.diverged_reason):
+        dst.diverged_reason[r] = reason
+    dst.nis_dof[rows] = src.nis_dof
+    dst.dof[rows] = src.nis_dof if src.dof is None else src.dof
+    if src.gated is not None:
+        dst.gated[rows] = src.gated
+
+
+def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -> tuple[ChunkResult, sd.TrialDispersions]:
+    """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order)."""
+    t0 = time.perf_counter()
+    trials = np.asarray(trials, dtype=np.int64)
+    B, K1 = trials.size, setup.steps + 1
+    disp = sd.draw(scn, trials)
+    labels = [f.label for f in scn.filters]
+    runs = {lab: _empty_run(lab, B, K1) for lab in labels}
+    valid = np.array([not r for r in disp.invalid])
+    for i in np.flatnonzero(~valid):
+        for r in runs.values():
+            r.diverged_step[i] = 0
+            r.diverged_reason[i] = INVALID_PREFIX + disp.invalid[i]
+    rows = np.flatnonzero(valid)
+    if rows.size:
+        tsetups = [setup_of(disp.truth[i]) for i in rows]
+        truth = truth_of(tsetups, setup.times, setup.truth_rtol)
+        exact = exact_measurements(tsetups, truth)
+        draws = meas.draw_trials(scn.seed, sd.noise_streams(scn, trials[rows]), setup.x0.size, setup.steps,
+                                 setup.n_points)  # fmt: skip
+        noisy = noisy_measurements(tsetups, exact, draws)
+        faulty = setup.sensor.faults
+        if faulty:  # the tracker's faults: the same per-trial fault stream as an undispersed run (sim/faults.py)
+            kept_all = np.ones((B, K1, setup.n_points), bool)
+            outlier_all = np.zeros((B, K1, setup.n_points), bool)
+        fsetups = [setup_of(disp.filter_model[i]) for i in rows]
+        x0_hat = meas.initial_estimates(setup, draws, np.stack([s.x0 for s in fsetups]))
+        groups: dict[tuple, list[int]] = {}
+        for g, i in enumerate(rows):
+            groups.setdefault((disp.model_key[i], exact.visible[g].tobytes()), []).append(g)
+        for members in groups.values():
+            m = np.asarray(members)
+            fsetup = fsetups[m[0]]
+            filters: list[FilterSetup] = [filter_setup_of(f, fsetup) for f in scn.filters]
+            y_m, kept_m = noisy.y[m], None
+            if faulty:
+                y_m, f_m = apply_faults(setup.sensor, scn.seed, trials[rows[m]], y_m, exact.y[m], exact.visible[m[0]])
+                kept_m = f_m.kept
+                kept_all[rows[m]], outlier_all[rows[m]] = f_m.kept, f_m.outlier
+            tg = Truth(t=truth.t, nu=truth.nu[m], nu_dot=truth.nu_dot[m], nu_ddot=truth.nu_ddot[m], x=truth.x[m],
+                       alpha=truth.alpha[m])  # fmt: skip
+            for fs in filters:
+                t1 = time.perf_counter()
+                r = run_filter(x0_hat[m], fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m)
+                _put(runs[fs.label], r, rows[m])
+                runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
+                                            else np.zeros(B))  # fmt: skip
+                runs[fs.label].runtime_s[rows[m]] = (time.perf_counter() - t1) / m.size
+    for r in runs.values():
+        if r.runtime_s is None:
+            r.runtime_s = np.zeros(B)
+    faults = Faults(kept_all, outlier_all) if rows.size and setup.sensor.faults else None
+    return ChunkResult(trials, [runs[lab] for lab in labels], time.perf_counter() - t0, faults), disp
+
+
+def with_columns(tdf: pd.DataFrame, disp: sd.TrialDispersions) -> pd.DataFrame:
+    """``trials_frame`` rows plus ``invalid`` and one column per dispersed scalar (trial-major rows)."""
+    pos = pd.Index(disp.trials).get_indexer(tdf["trial"].to_numpy())
+    extra = {"invalid": np.array([bool(disp.invalid[p]) for p in pos])}
+    for name, v in disp.columns.items():
+        extra[name] = v[pos]
+    return pd.concat([tdf.reset_index(drop=True), pd.DataFrame(extra)], axis=1)

@@ -1,0 +1,144 @@
+"""Dispersed campaigns through the engine: determinism, rerun, columns, invalid draws, validation."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+import yaml
+from scenarios import scenario_dict
+from typer.testing import CliRunner
+
+from stereopose_mc.cli.main import app
+from stereopose_mc.config import load_scenario_text
+from stereopose_mc.mc import engine
+from stereopose_mc.mc.rerun import rerun_trial
+
+DISP = {
+    "truth_initial_state.rho_m": {"dist": "normal", "std": [1.0, 3.0, 1.0]},
+    "truth_initial_state.omega_degps": {"dist": "uniform", "low": -0.3, "high": 0.3},
+    "target.inertia_kgm2": {"dist": "uniform", "low": [0.8, 0.9, 1.0], "high": [1.0, 1.1, 1.3], "mode": "replace"},
+    "leader.orbit.a_km": {"dist": "normal", "std": 350.0, "applies_to": "both"},  # some draws are invalid
+    "camera.baseline_m": {"dist": "normal", "std": 0.01},
+}
+
+
+def text(**over) -> str:
+    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 15.0, "error_window_start_s": 5.0}, trials=12, **over)
+    d["dispersions"] = DISP
+    return yaml.safe_dump(d, sort_keys=False)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    scn = load_scenario_text(text(), "<test>")
+    root = tmp_path_factory.mktemp("disp")
+    a = engine.run(scn, root / "a", engine.RunOptions(jobs=1, chunk_size=8, command=["test"]))
+    b = engine.run(scn, root / "b", engine.RunOptions(jobs=2, chunk_size=3, command=["test"]))
+    return root, a, b
+
+
+def test_dispersed_run_is_byte_identical_across_jobs_and_chunks(runs):
+    root, _, _ = runs
+    for name in ("trials.parquet", "timeseries.parquet", "percentiles.csv"):
+        assert (root / "a" / name).read_bytes() == (root / "b" / name).read_bytes(), name
+
+
+def test_columns_units_and_invalid_trials(runs):
+    root, a, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    assert {"truth_initial_state.rho_m[1]", "target.inertia_kgm2[2]", "leader.orbit.a_km", "invalid"} <= set(df)
+    unit = {f.name: (f.metadata or {}).get(b"unit") for f in pq.read_schema(root / "a" / "trials.parquet")}
+    assert unit["truth_initial_state.omega_degps[0]"] == b"deg/s" and unit["leader.orbit.a_km"] == b"km"
+    bad = df["leader.orbit.a_km"] * (1 - 0.05) < 6378.137
+    assert bad.any() and (~bad).any()  # the seed gives both kinds
+    assert (df["invalid"] == bad).all()
+    assert df.loc[bad, "diverged"].all() and (df.loc[bad, "diverged_step"] == 0).all()
+    assert df.loc[bad, "diverged_reason"].str.startswith("invalid draw: leader.orbit").all()
+    assert df.loc[~bad, "e_rho"].notna().any()
+
+
+def test_rerun_reproduces_a_dispersed_trial(runs):
+    root, _, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    j = int(df.loc[~df["invalid"], "trial"].iloc[-1])
+    res = rerun_trial(root / "a", j)
+    assert res.identical
+
+
+def test_simulate_trial_writes_the_dispersed_truth(runs, tmp_path):
+    root, _, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    j = int(df.loc[~df["invalid"], "trial"].iloc[0])
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text(text())
+    r = CliRunner().invoke(app, ["simulate", str(cfg), "--trial", str(j), "--out", str(tmp_path / "sim")])
+    assert r.exit_code == 0, r.output
+    truth = pd.read_parquet(tmp_path / "sim" / "truth.parquet")
+    row = df[df["trial"] == j].iloc[0]
+    assert truth["rho_y"].iloc[0] == row["truth_initial_state.rho_m[1]"]
+
+
+def test_bad_dispersions_are_rejected_with_file_line_and_exit_2(tmp_path):
+    d = yaml.safe_load(text())
+    d["dispersions"] = {"sampling": "random",
+                        "truth_initial_state.rho": {"dist": "normal", "std": 1.0},
+                        "target.inertia_kgm2": {"dist": "uniform", "low": [0.1, 0.9, 1.0], "high": [1.0, 1.1, 1.3],
+                                                "mode": "replace"}}  # fmt: skip
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    lines = cfg.read_text().splitlines()
+    r = CliRunner().invoke(app, ["validate", str(cfg)])
+    assert r.exit_code == 2
+    err = r.output.splitlines()
+    line_rho = 1 + next(i for i, s in enumerate(lines) if "truth_initial_state.rho:" in s)
+    assert any(f"bad.yaml:{line_rho}: dispersions.truth_initial_state.rho: unknown" in e and "rho_m" in e for e in err)
+    assert any("dispersions.target.inertia_kgm2: can produce an invalid scenario" in e and "triangle" in e for e in err)
+
+
+def test_report_of_a_dispersed_run_has_the_sensitivity_section(runs):
+    from stereopose_mc.outputs.report import build_run_report
+
+    root, _, _ = runs
+    html = build_run_report(root / "a").read_text()
+    assert "Sensitivity: what drives the error" in html and "the three strongest drivers" in html
+    table = pd.read_csv(root / "a" / "sensitivity.csv")
+    assert {"e_rho", "diverged"} & set(table["metric"]) and "camera.baseline_m" in set(table["parameter"])
+    assert (root / "a" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
+
+
+def _chunk(disp: dict, baseline: float = 1.0):
+    from stereopose_mc.mc import dispersed
+
+    d = scenario_dict("caseB", time={"dt_s": 1.0, "duration_s": 6.0, "error_window_start_s": 2.0}, trials=3,
+                      camera={"baseline_m": baseline})  # fmt: skip
+    d["dispersions"] = disp
+    scn = load_scenario_text(yaml.safe_dump(d, sort_keys=False), "<test>")
+    p = engine.prepare(scn)
+    res, _ = dispersed.run_chunk(scn, [0, 1, 2], p.setup, p.bounds)
+    return res.runs[0].errors
+
+
+def test_applies_to_selects_what_the_filter_model_sees():
+    """A baseline of 1.2 m: dispersed with applies_to both == nominal 1.2 m; truth-only differs."""
+    import numpy as np
+
+    inert = {"leader.orbit.raan_deg": {"dist": "choice", "values": [0.0]}}  # no effect on the dynamics
+    both = _chunk({**inert, "camera.baseline_m": {"dist": "choice", "values": [1.2], "applies_to": "both"}})
+    nominal = _chunk(inert, baseline=1.2)
+    truth_only = _chunk({**inert, "camera.baseline_m": {"dist": "choice", "values": [1.2]}})
+    assert np.array_equal(both, nominal, equal_nan=True)
+    assert not np.allclose(truth_only[:, 1:], nominal[:, 1:], equal_nan=True)
+
+
+def test_applies_to_centres_the_initial_estimate():
+    """State keys: both -> initial error is the N(0, P0) draw alone (as without dispersion); truth -> plus the offset."""
+    import numpy as np
+
+    inert = {"leader.orbit.raan_deg": {"dist": "choice", "values": [0.0]}}
+    shift = {"dist": "choice", "values": [[3.0, 4.0, 0.0]]}  # |offset| = 5 m
+    nominal = _chunk(inert)[:, 0, 0]
+    both = _chunk({**inert, "truth_initial_state.rho_m": {**shift, "mode": "add", "applies_to": "both"}})[:, 0, 0]
+    truth = _chunk({**inert, "truth_initial_state.rho_m": {**shift, "mode": "add"}})[:, 0, 0]
+    assert np.allclose(both, nominal, rtol=1e-12)
+    assert np.all(np.abs(truth - 5.0) <= nominal + 1e-9) and not np.allclose(truth, nominal)
