@@ -142,3 +142,40 @@ def test_applies_to_centres_the_initial_estimate():
     truth = _chunk({**inert, "truth_initial_state.rho_m": {**shift, "mode": "add"}})[:, 0, 0]
     assert np.allclose(both, nominal, rtol=1e-12)
     assert np.all(np.abs(truth - 5.0) <= nominal + 1e-9) and not np.allclose(truth, nominal)
+
+
+def faulty_text() -> str:
+    """A dispersed campaign with tracker faults and a gated filter (issues 11 and 12 together)."""
+    d = yaml.safe_load(text())
+    d["measurements"]["dropout_probability"] = 0.1
+    d["measurements"]["outliers"] = {"probability": 0.05, "model": "uniform_image"}
+    for f in d["filters"]:
+        f["gating"] = {"probability": 0.999}
+    return yaml.safe_dump(d, sort_keys=False)
+
+
+def test_dispersed_faults_and_gating_are_chunk_independent_and_counted(tmp_path):
+    scn = load_scenario_text(faulty_text(), "<test>")
+    a = tmp_path / "a"
+    b = tmp_path / "b"
+    engine.run(scn, a, engine.RunOptions(jobs=1, chunk_size=12, command=["test"]))
+    engine.run(scn, b, engine.RunOptions(jobs=1, chunk_size=5, command=["test"]))
+    for name in ("trials.parquet", "timeseries.parquet"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    df = pd.read_parquet(a / "trials.parquet")
+    ok = ~df["invalid"]
+    # 10 % dropouts of 5 features over 15 steps: about 7.5 per trial; every valid trial has some
+    assert (df.loc[ok, "dropped_features"] > 0).all()
+    assert (df.loc[df["invalid"], ["dropped_features", "outlier_features"]] == 0).all().all()
+    assert df.loc[ok, "outlier_features"].sum() > 0
+    assert df.loc[ok, "gated_features"].sum() >= df.loc[ok, "outlier_features"].sum() // 2
+
+
+def test_dispersions_with_a_perturbed_truth_are_refused(tmp_path):
+    d = yaml.safe_load(text())
+    d["truth_model"] = {"j2": True}
+    cfg = tmp_path / "j2.yaml"
+    cfg.write_text(yaml.safe_dump(d, sort_keys=False))
+    r = CliRunner().invoke(app, ["validate", str(cfg)])
+    assert r.exit_code == 2
+    assert "not supported yet" in r.output and "Traceback" not in r.output
