@@ -98,6 +98,10 @@ MEANINGS = {
     "divergence.k": "Same for the error of k1 or k2.",
     "divergence.nis_window_steps": "Steps over which the NIS is averaged for the lost-filter test.",
     "divergence.nis_start_s": "Time from which the lost-filter (NIS) test applies; the first updates are far from linear.",
+    "divergence.sigma_ratio": "A trial is `inconsistent` (not converged) when a block's error stays above this many of "
+                              "the filter's own sigmas for that block over `nis_window_steps` steps (docs/filters.md).",
+    "divergence.nees_factor": "A trial is `inconsistent` when its gauge-projected NEES stays above this times the "
+                              "chi-square 99.9 % bound over `nis_window_steps` steps (docs/filters.md).",
 }  # fmt: skip
 
 FILTER_MEANINGS = {
@@ -109,7 +113,7 @@ FILTER_MEANINGS = {
     "measurement_noise.disparity_sigma": "The filter's R: σ for d. null = the truth's.",
     "measurement_noise.angular_acceleration_sigma_radps2": "The filter's σ_α for the pseudo-measurement. null = the "
                                                            "truth's.",
-    "process_noise.rho_m2": "The filter's Q: variance added per step to each ρ₀ component.",
+    "process_noise.rho_m2": "The filter's Q: variance added per step to each ρ₀ component (derivation: docs/filters.md).",
     "process_noise.rho_dot_m2ps2": "Q per step, each ρ̇₀ component.",
     "process_noise.omega_deg2ps2": "Q per step, each ω component.",
     "process_noise.q": "Q per step, each quaternion component.",
@@ -118,6 +122,8 @@ FILTER_MEANINGS = {
     "transition": "Φ = expm(F Δt) exactly (`expm`) or by its Taylor series (`taylor`).",
     "taylor_order": "Order of the Taylor series of Φ.",
     "integration_substeps": "RK4 substeps per Δt in the prediction.",
+    "first_update": "EKF only: `iterated` runs the IEKF's iterations at the first update (t = Δt), plain EKF "
+                    "updates after; `ekf` (default) keeps every update plain. See docs/filters.md.",
     "tolerance": "IEKF stopping tolerance on the (unit-free) increment size (thesis: 0.01).",
     "max_iterations": "IEKF iteration limit (thesis: 10).",
     "step_control": "IEKF step control: backtracking line search on the MAP cost, Levenberg-Marquardt damping, or "

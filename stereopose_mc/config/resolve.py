@@ -131,11 +131,14 @@ class FilterSetup:
     max_iterations: int = 1
     step_control: str = "none"
     stopping: str = "mahalanobis"
+    first_update: str = "ekf"  # EKF only: "iterated" runs the IEKF at the first update
 
 
 def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
     r = f.measurement_noise
     extra = {}
+    if isinstance(f, EKFConfig):
+        extra = dict(first_update=f.first_update)
     if isinstance(f, IEKFConfig):
         extra = dict(
             tolerance=f.tolerance, max_iterations=f.max_iterations, step_control=f.step_control, stopping=f.stopping

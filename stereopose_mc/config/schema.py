@@ -178,13 +178,13 @@ class FilterMeasurementNoise(_Model):
 
 
 class ProcessNoiseConfig(_Model):
-    """The filter's Q, variances added per step, per state block."""
+    """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
 
-    rho_m2: NonNeg = 0.0
+    rho_m2: NonNeg = 3e-9
     rho_dot_m2ps2: NonNeg = 1e-12
     omega_deg2ps2: NonNeg = 1e-10
-    q: NonNeg = 1e-12
-    feature_points_m2: NonNeg = 0.0
+    q: NonNeg = 3e-11
+    feature_points_m2: NonNeg = 3e-9
     k: NonNeg = 1e-10
 
 
@@ -203,6 +203,11 @@ class _FilterBase(_Model):
 
 class EKFConfig(_FilterBase):
     type: Literal["ekf"]
+    first_update: Literal["ekf", "iterated"] = Field(
+        default="ekf",
+        description="'iterated': the first update (t = dt) runs the IEKF's iterations (line search, Mahalanobis "
+        "stopping, tolerance 0.01, at most 10), the later ones are plain EKF updates",
+    )
 
 
 class IEKFConfig(_FilterBase):
@@ -230,6 +235,16 @@ class DivergenceConfig(_Model):
     )
     nis_window_steps: Annotated[int, Field(ge=1)] = 10
     nis_start_s: NonNeg = 10.0
+    sigma_ratio: Pos = Field(
+        default=30.0,
+        description="a trial is 'inconsistent' when a block's error stays above sigma_ratio times the filter's own "
+        "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
+    )
+    nees_factor: Pos = Field(
+        default=1000.0,
+        description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
+        "chi-square 99.9% bound over nis_window_steps steps",
+    )
 
 
 class Scenario(_Model):

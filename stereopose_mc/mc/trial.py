@@ -24,10 +24,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
+from ..core import errorstate as es
 from ..core import quaternion as qt
 from ..core import state as st
 from ..core import filters as kf
 from ..filters import relnav
+from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
 from ..sim.truth import Truth
@@ -48,6 +50,8 @@ class Bounds:
     nis_ratio: float = 100.0
     nis_window_steps: int = 10
     nis_start_s: float = 10.0
+    sigma_ratio: float = 30.0  # 'inconsistent': a block's error over its claimed sigma (mc/divergence.py)
+    nees_factor: float = 1000.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -105,9 +109,11 @@ class FilterRun:
     converged: Array  # (B, K+1) bool
     diverged_step: Array  # (B,) int, -1 if not diverged
     diverged_reason: list[str] = field(default_factory=list)
+    nees_parts: dict[str, Array] = field(default_factory=dict)  # nees_<block>, nees_gauge: (B, K+1)
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
     P_final: Array | None = None  # (B, n, n)
+    k_sigma_ratio: Array | None = None  # (B, 2) final / initial standard deviation of k1, k2
 
 
 def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
@@ -155,7 +161,8 @@ def run_filter(
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
     err[:, 0] = errors(x, truth.x[0])
-    nees[:, 0] = _nees(x, P, truth.x[0])
+    parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
+    _record_nees(nees, parts, np.arange(B), 0, x, P, truth.x[0])
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -194,7 +201,7 @@ def run_filter(
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
-                nees[active, k] = _nees(u.x, u.P, truth.x[k])
+                _record_nees(nees, parts, active, k, u.x, u.P, truth.x[k])
             except np.linalg.LinAlgError:
                 pass
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
@@ -206,13 +213,19 @@ def run_filter(
                 if not bad[j]:
                     bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
                               f"{ratio[j]:.3g} x its dimension > {bounds.nis_ratio:g}")  # fmt: skip
+            incons = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio, bounds.nees_factor)
+            bad = [b or c for b, c in zip(bad, incons)]
         keep = np.ones(active.size, bool)
         for j, i in enumerate(active):
             if bad[j]:
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
         active = active[keep]
-    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P)
+    ks = slice(P.shape[-1] - 2, P.shape[-1])  # k is last in the state and in the error state
+    with np.errstate(all="ignore"):
+        k_ratio = np.sqrt(np.diagonal(P[:, ks, ks], axis1=-2, axis2=-1) / setup.P0_diag[-2:])
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, nees_parts=parts,
+                     x_final=x, P_final=P, k_sigma_ratio=k_ratio)  # fmt: skip
 
 
 def _omega_var(P: Array) -> Array:
@@ -250,15 +263,22 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     return u, reasons
 
 
-def _nees(x: Array, P: Array, x_true: Array) -> Array:
-    """``e^T P^-1 e`` of the full state error (q sign-aligned)."""
-    from ..core.filters import mahalanobis2
+def nees_of(x: Array, P: Array, x_true: Array) -> dict[str, Array]:
+    """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
+    ``P`` is the covariance of the full state ``(B, n, n)`` (mapped to the error state at
+    the estimate) or already of the error state ``(B, n-1, n-1)`` (MEKF, UKF).
+    """
     with np.errstate(all="ignore"):
-        try:
-            return mahalanobis2(state_error(x, x_true), P)
-        except np.linalg.LinAlgError:
-            return np.full(x.shape[0], np.nan)
+        P_eps = es.to_error_covariance(x, P) if P.shape[-1] == x.shape[-1] else P
+        return es.nees_all(es.estimation_error(x, x_true), P_eps, x)
+
+
+def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array) -> None:
+    v = nees_of(x, P, x_true)
+    nees[rows, k] = v["nees"]
+    for name, a in parts.items():
+        a[rows, k] = v[name]
 
 
 @dataclass

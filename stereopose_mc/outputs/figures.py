@@ -14,7 +14,7 @@ Figures (``<f>`` is a filter label, made safe for file names):
   central 70 % (15th-85th percentile) and 90 % (5th-95th) bands, log y;
 - ``nees-<f>`` / ``nis-<f>``: the mean over trials of NEES / NIS vs time with the two-sided
   95 % band of that mean for a consistent filter,
-  ``[chi2.ppf(0.025, M n), chi2.ppf(0.975, M n)] / M`` (``M`` trials alive at the step,
+  ``[chi2.ppf(0.025, M d), chi2.ppf(0.975, M d)] / M`` with ``d = n - 1`` (``M`` trials alive at the step,
   ``n`` = state dimension for NEES, the step's measurement dimension for NIS);
 - ``runtime``: histogram of the per-trial compute time (``timing.parquet``).
 
