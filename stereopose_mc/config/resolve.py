@@ -9,7 +9,8 @@ from numpy.typing import NDArray
 
 from ..core import state as st
 from ..core.orbit import Orbit
-from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
+from .schema import (CovarianceConfig, EKFConfig, IEKFConfig, MEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig,
+                     Scenario, UKFConfig)  # fmt: skip
 
 DEG = np.pi / 180.0
 Array = NDArray[np.float64]
@@ -118,7 +119,7 @@ class FilterSetup:
     """A filter's own tuning in SI: R's standard deviations and Q's diagonal."""
 
     label: str
-    kind: str  # "ekf" | "iekf"
+    kind: str  # "ekf" | "iekf" | "mekf" | "ukf"
     sigma_image: float
     sigma_flow: float
     sigma_disparity: float
@@ -132,13 +133,21 @@ class FilterSetup:
     step_control: str = "none"
     stopping: str = "mahalanobis"
     first_update: str = "ekf"  # EKF only: "iterated" runs the IEKF at the first update
+    ukf_alpha: float = 0.5  # UKF sigma-point scaling (Merwe): alpha, beta, kappa
+    ukf_beta: float = 2.0
+    ukf_kappa: float = 0.0
 
 
-def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
+def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup) -> FilterSetup:
     r = f.measurement_noise
     extra = {}
     if isinstance(f, EKFConfig):
         extra = dict(first_update=f.first_update)
+    if isinstance(f, MEKFConfig):
+        extra = dict(tolerance=f.tolerance, max_iterations=f.max_iterations if f.iterated else 1,
+                     step_control=f.step_control, stopping=f.stopping)  # fmt: skip
+    if isinstance(f, UKFConfig):
+        extra = dict(ukf_alpha=f.alpha, ukf_beta=f.beta, ukf_kappa=f.kappa, first_update=f.first_update)
     if isinstance(f, IEKFConfig):
         extra = dict(
             tolerance=f.tolerance, max_iterations=f.max_iterations, step_control=f.step_control, stopping=f.stopping

@@ -210,15 +210,41 @@ class EKFConfig(_FilterBase):
     )
 
 
-class IEKFConfig(_FilterBase):
-    type: Literal["iekf"]
+class _GaussNewtonBase(_FilterBase):
+    """The iterated update's knobs (docs/filters.md, IEKF)."""
+
     tolerance: Pos = 0.01
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 10
     step_control: Literal["line_search", "levenberg_marquardt", "none"] = "line_search"
     stopping: Literal["mahalanobis", "prior", "scaled", "raw"] = "mahalanobis"
 
 
-FilterConfig = Annotated[Union[IEKFConfig, EKFConfig], Field(discriminator="type")]
+class IEKFConfig(_GaussNewtonBase):
+    type: Literal["iekf"]
+
+
+class MEKFConfig(_GaussNewtonBase):
+    """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error."""
+
+    type: Literal["mekf"]
+    iterated: bool = Field(default=True, description="run the IEKF's Gauss-Newton iterations in the update")
+
+
+class UKFConfig(_FilterBase):
+    """Unscented filter with multiplicative attitude (docs/filters.md); scaled sigma points (Merwe)."""
+
+    type: Literal["ukf"]
+    alpha: Annotated[float, Field(gt=0, le=1)] = 0.5
+    beta: NonNeg = 2.0
+    kappa: float = 0.0
+    first_update: Literal["ukf", "iterated"] = Field(
+        default="ukf",
+        description="'iterated': the first update (t = dt) is the MEKF's iterated update (line search, Mahalanobis "
+        "stopping, tolerance 0.01, at most 10 iterations), the later ones unscented",
+    )
+
+
+FilterConfig = Annotated[Union[IEKFConfig, EKFConfig, MEKFConfig, UKFConfig], Field(discriminator="type")]
 
 
 class DivergenceConfig(_Model):

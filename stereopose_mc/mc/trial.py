@@ -28,7 +28,7 @@ from ..core import errorstate as es
 from ..core import quaternion as qt
 from ..core import state as st
 from ..core import filters as kf
-from ..filters import relnav
+from ..filters import estimators, relnav
 from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
@@ -160,6 +160,8 @@ def run_filter(
     reasons = [""] * B
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
+    if estimators.error_state(fs.kind):
+        P = es.to_error_covariance(x, P)
     err[:, 0] = errors(x, truth.x[0])
     parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
     _record_nees(nees, parts, np.arange(B), 0, x, P, truth.x[0])
@@ -175,7 +177,7 @@ def run_filter(
         if active.size == 0:
             break
         with np.errstate(all="ignore"):
-            xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = estimators.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -240,13 +242,13 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     A trial whose own update fails gets NaN state and covariance.
     """
     try:
-        return relnav.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+        return estimators.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
     except np.linalg.LinAlgError:
         pass
     parts, reasons = [], []
     for j in range(rows.size):
         try:
-            parts.append(relnav.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
+            parts.append(estimators.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
             reasons.append("")
         except np.linalg.LinAlgError as exc:
             parts.append(None)
@@ -254,11 +256,12 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     ok = next(p for p in parts if p is not None) if any(p is not None for p in parts) else None
     m = ok.nu.shape[-1] if ok is not None else step.y.shape[-1]
     n = xa.shape[-1]
+    ne = Pa.shape[-1]
 
     def cat(attr, shape, fill):
         return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
 
-    u = kf.Update(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
+    u = kf.Update(cat("x", (n,), np.nan), cat("P", (ne, ne), np.nan), cat("nu", (m,), np.nan),
                   cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
     return u, reasons
 
