@@ -5,7 +5,7 @@ Command modules register themselves on the shared ``app`` when imported here.
 
 from __future__ import annotations
 
-from . import analysis_cmds, dynamics_cmd, report_cmds, run_cmds, scenario_cmds  # noqa: F401  (registers commands)
+from . import analysis_cmds, dynamics_cmd, report_cmds, run_cmds, scenario_cmds, tune_cmd  # noqa: F401  (registers commands)
 from .app import app
 
 
