@@ -180,7 +180,7 @@ class FilterMeasurementNoise(_Model):
 class ProcessNoiseConfig(_Model):
     """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
 
-    rho_m2: NonNeg = 3e-9
+    rho_m2: NonNeg = 1e-5
     rho_dot_m2ps2: NonNeg = 1e-12
     omega_deg2ps2: NonNeg = 1e-10
     q: NonNeg = 3e-11
@@ -267,7 +267,7 @@ class DivergenceConfig(_Model):
         "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
     )
     nees_factor: Pos = Field(
-        default=1000.0,
+        default=100.0,
         description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
         "chi-square 99.9% bound over nis_window_steps steps",
     )
