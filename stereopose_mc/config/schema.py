@@ -267,7 +267,7 @@ class DivergenceConfig(_Model):
         "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
     )
     nees_factor: Pos = Field(
-        default=100.0,
+        default=1000.0,
         description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
         "chi-square 99.9% bound over nis_window_steps steps",
     )

@@ -51,7 +51,7 @@ class Bounds:
     nis_window_steps: int = 10
     nis_start_s: float = 10.0
     sigma_ratio: float = 30.0  # 'inconsistent': a block's error over its claimed sigma (mc/divergence.py)
-    nees_factor: float = 100.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
+    nees_factor: float = 1000.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
