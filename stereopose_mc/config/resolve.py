@@ -44,6 +44,8 @@ class Setup:
     alpha_td_r: float = 0.05  # rad/s^3
     alpha_td_h0: float = 1.5  # s
     alpha_sigma_floor: float = 1e-9  # rad/s^2
+    initial_estimate: str = "truth_plus_noise"  # or "measurements" (filters/initialization.py)
+    com_sigma: float = 1.0  # m, centre of mass about the points' centroid (measurements start)
 
     @property
     def n_points(self) -> int:
@@ -97,6 +99,8 @@ def setup_of(s: Scenario) -> Setup:
         P0_diag=block_diag(s.initial_covariance, len(pts)),
         truth_rtol=s.time.truth_rtol,
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
+        initial_estimate=s.initial_estimate.method,
+        com_sigma=s.initial_estimate.centre_of_mass_sigma_m,
     )
 
 

@@ -273,6 +273,20 @@ class DivergenceConfig(_Model):
     )
 
 
+class InitialEstimateConfig(_Model):
+    """How the filters start (docs/filters.md, Initial estimate)."""
+
+    method: Literal["truth_plus_noise", "measurements"] = Field(
+        default="truth_plus_noise",
+        description="truth_plus_noise: x0 ~ N(truth, P0) (the thesis); measurements: rho, rho_dot, omega and the "
+        "feature points from the first stereo frame (triangulation and a rigid-body fit), q and k from the "
+        "N(truth, P0) draw",
+    )
+    centre_of_mass_sigma_m: Pos = Field(
+        default=1.0, description="measurements: standard deviation of the centre of mass about the points' centroid"
+    )
+
+
 class Scenario(_Model):
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
     description: str = ""
@@ -290,6 +304,7 @@ class Scenario(_Model):
     )
     percentiles: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = [50, 70, 90, 100]
     divergence: DivergenceConfig = DivergenceConfig()
+    initial_estimate: InitialEstimateConfig = InitialEstimateConfig()
 
     @field_validator("filters")
     @classmethod

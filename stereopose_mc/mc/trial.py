@@ -29,6 +29,7 @@ from ..core import quaternion as qt
 from ..core import state as st
 from ..core import filters as kf
 from ..filters import estimators, relnav
+from ..filters.initialization import measurement_start
 from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
@@ -139,7 +140,8 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
 
 
 def run_filter(
-    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds
+    x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
+    P0: Array | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
@@ -159,7 +161,7 @@ def run_filter(
     div_step = np.full(B, -1)
     reasons = [""] * B
     x = x0_hat.copy()
-    P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
+    P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     if estimators.error_state(fs.kind):
         P = es.to_error_covariance(x, P)
     err[:, 0] = errors(x, truth.x[0])
@@ -298,10 +300,13 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
     noisy = meas.noisy(setup, exact, draws)
     x0_hat = meas.initial_estimates(setup, draws)
+    P0 = None
+    if setup.initial_estimate == "measurements":
+        x0_hat, P0 = measurement_start(setup, filters[0], noisy.y[:, 0], exact.visible[0], x0_hat)
     runs = []
     for fs in filters:
         t1 = time.perf_counter()
-        r = run_filter(x0_hat, setup, truth, noisy.y, noisy.alpha, exact.visible, fs, bounds)
+        r = run_filter(x0_hat, setup, truth, noisy.y, noisy.alpha, exact.visible, fs, bounds, P0)
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0)
