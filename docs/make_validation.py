@@ -742,7 +742,7 @@ def estimators_section(case: str, dirs: dict[str, Path]) -> tuple[str, list[Tabl
         t = r.config["time"]
         steps = int(round((t["duration_s"] - t["error_window_start_s"]) / t["dt_s"])) + 1
         n = st.size(len(r.config["target"]["feature_points_m"]))
-        tb = Table(f"estimators-{case}-{title}", ["filter", "not converged", "NEES/dof gauge", "full", "rho", "rho_dot",
+        tb = Table(f"estimators-{case}-{d.name.rsplit('-', 1)[-1]}", ["filter", "not converged", "NEES/dof gauge", "full", "rho", "rho_dot",
                                                   "omega", "attitude", "points", "k", "NIS/dof", *LABELS.values()], 1)  # fmt: skip
         verdicts = []
         for label in r.filters:
