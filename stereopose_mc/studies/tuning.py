@@ -21,6 +21,7 @@ search tries to raise it.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -29,11 +30,9 @@ import pandas as pd
 
 from ..config.resolve import DEG, FilterSetup, block_diag
 from ..config.schema import ProcessNoiseConfig, Scenario
-from ..core import errorstate as es
-from ..core import state as st
 from ..mc import engine
+from ..core import errorstate as es
 from ..mc.trial import ERROR_NAMES, run_chunk
-from ..outputs import consistency, tables
 
 BLOCKS = ("rho", "rho_dot", "omega", "q", "feature_points", "k")
 KEYS = {"rho": "rho_m2", "rho_dot": "rho_dot_m2ps2", "omega": "omega_deg2ps2", "q": "q",
@@ -66,15 +65,26 @@ class TuneResult:
 
 
 def _evaluate(prep: engine.Prepared, index: int, pn: dict[str, float], trials: np.ndarray) -> Evaluation:
+    """Medians over the converged trials of the window-averaged NEES/dof (per key), NIS/dof and errors."""
     scn, setup = prep.scenario, prep.setup
     fs: FilterSetup = dataclasses.replace(prep.filters[index], Q_diag=block_diag(ProcessNoiseConfig(**pn), setup.n_points))
-    res = run_chunk(scn.seed, trials, setup, prep.truth, prep.exact, [fs], prep.bounds)
-    df = tables.trials_frame(res, prep.truth.t, setup.window_start, scn.seed)
-    steps = int(np.sum(tables.window_mask(prep.truth.t, setup.window_start)))
-    c = consistency.summarize(df, fs.label, setup.x0.size, steps)
-    ok = df[~df["diverged"]]
-    errs = {e: float(np.median(ok[e])) if len(ok) else float("inf") for e in ERROR_NAMES}
-    return Evaluation(dict(pn), c.nees, c.nis_ratio, errs, int(df["diverged"].sum()))
+    r = run_chunk(scn.seed, trials, setup, prep.truth, prep.exact, [fs], prep.bounds).runs[0]
+    w = prep.truth.t >= setup.window_start - 1e-9
+    ok = r.diverged_step < 0
+    series = {"nees": r.nees, **r.nees_parts}
+
+    def med(a: np.ndarray) -> float:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            v = np.nanmean(a[ok][:, w], axis=1) if ok.any() else np.array([])
+        v = v[np.isfinite(v)]
+        return float(np.median(v)) if v.size else float("nan")
+
+    nees = {k: med(series[k]) / d for k, d in es.nees_dof(setup.x0.size).items()}
+    with np.errstate(all="ignore"):
+        nis = med(np.where(r.nis_dof > 0, r.nis / np.maximum(r.nis_dof, 1), np.nan))
+        errs = {e: med(r.errors[..., j]) if ok.any() else float("inf") for j, e in enumerate(ERROR_NAMES)}
+    return Evaluation(dict(pn), nees, nis, errs, int((~ok).sum()))
 
 
 def _cost(ev: Evaluation, ref: Evaluation, trials: int) -> float:
@@ -166,11 +176,3 @@ def tuned_entry(scn: Scenario, label: str, res: TuneResult) -> dict:
     d = {"type": f.type, **f.model_dump(mode="json", exclude_defaults=True)}
     d["process_noise"] = {k: float(f"{v:.3g}") for k, v in res.after.process_noise.items()}
     return d
-
-
-def dof_note(state_dim: int) -> str:
-    d = es.nees_dof(state_dim)
-    return ", ".join(f"{k.removeprefix('nees_')} {v}" for k, v in d.items())
-
-
-__all__ = ["tune", "TuneError", "TuneResult", "comparison_table", "tuned_entry", "BLOCKS", "st"]
