@@ -20,7 +20,7 @@ import annotated_types as at
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from stereopose_mc.config.schema import EKFConfig, IEKFConfig, Scenario
+from stereopose_mc.config.schema import EKFConfig, IEKFConfig, MEKFConfig, Scenario, UKFConfig
 
 DOC = Path(__file__).resolve().parent / "scenarios.md"
 BEGIN, END = "<!-- keys:begin -->", "<!-- keys:end -->"
@@ -100,10 +100,15 @@ MEANINGS = {
     "divergence.nis_start_s": "Time from which the lost-filter (NIS) test applies; the first updates are far from linear.",
     "dispersions": "Truth dispersions: `sampling` (`random` \\| `sobol` \\| `lhs`) and one entry per dispersed key path "
     "(`{dist: ..., mode: ..., applies_to: ...}`); null = every trial shares the nominal truth. See \"Dispersions\" below.",
+    "divergence.sigma_ratio": "A trial is `inconsistent` (not converged) when a block's error stays above this many of "
+                              "the filter's own sigmas for that block over `nis_window_steps` steps (docs/filters.md).",
+    "divergence.nees_factor": "A trial is `inconsistent` when its gauge-projected NEES stays above this times the "
+                              "chi-square 99.9 % bound over `nis_window_steps` steps (docs/filters.md).",
 }  # fmt: skip
 
 FILTER_MEANINGS = {
-    "type": "`iekf` (iterated EKF, Gauss-Newton form) or `ekf`.",
+    "type": "`iekf` (iterated EKF, Gauss-Newton form), `ekf`, `mekf` (multiplicative EKF) or `ukf` (unscented, "
+            "multiplicative attitude). See docs/filters.md.",
     "name": "Label in the outputs; default the type. Labels must be unique within `filters`.",
     "measurement_noise.image_sigma": "The filter's R: σ for u, v. null = the truth's `measurements.image_sigma` (which "
                                      "must then be > 0).",
@@ -111,7 +116,7 @@ FILTER_MEANINGS = {
     "measurement_noise.disparity_sigma": "The filter's R: σ for d. null = the truth's.",
     "measurement_noise.angular_acceleration_sigma_radps2": "The filter's σ_α for the pseudo-measurement. null = the "
                                                            "truth's.",
-    "process_noise.rho_m2": "The filter's Q: variance added per step to each ρ₀ component.",
+    "process_noise.rho_m2": "The filter's Q: variance added per step to each ρ₀ component (derivation: docs/filters.md).",
     "process_noise.rho_dot_m2ps2": "Q per step, each ρ̇₀ component.",
     "process_noise.omega_deg2ps2": "Q per step, each ω component.",
     "process_noise.q": "Q per step, each quaternion component.",
@@ -120,6 +125,13 @@ FILTER_MEANINGS = {
     "transition": "Φ = expm(F Δt) exactly (`expm`) or by its Taylor series (`taylor`).",
     "taylor_order": "Order of the Taylor series of Φ.",
     "integration_substeps": "RK4 substeps per Δt in the prediction.",
+    "iterated": "MEKF: run the IEKF's Gauss-Newton iterations (with `tolerance`, `max_iterations`, `step_control`, "
+                "`stopping`) in every update; false: plain EKF updates on the error state.",
+    "alpha": "UKF sigma-point spread α (van der Merwe scaling).",
+    "beta": "UKF prior-distribution parameter β (2 for a Gaussian).",
+    "kappa": "UKF secondary scaling κ.",
+    "first_update": "EKF / UKF: `iterated` runs the IEKF's iterations at the first update (t = Δt), plain EKF "
+                    "updates after; `ekf` (default) keeps every update plain. See docs/filters.md.",
     "tolerance": "IEKF stopping tolerance on the (unit-free) increment size (thesis: 0.01).",
     "max_iterations": "IEKF iteration limit (thesis: 10).",
     "step_control": "IEKF step control: backtracking line search on the MAP cost, Levenberg-Marquardt damping, or "
@@ -239,16 +251,21 @@ def scenario_rows() -> list[tuple[str, str, str, str, str]]:
 
 
 def filter_rows() -> list[tuple[str, str, str, str, str, str]]:
-    iekf = {k: f for k, f, _ in leaves(IEKFConfig)}
-    ekf = {k: f for k, f, _ in leaves(EKFConfig)}
-    order = ["type"] + [k for k in iekf if k != "type"]
+    models = {"iekf": IEKFConfig, "ekf": EKFConfig, "mekf": MEKFConfig, "ukf": UKFConfig}
+    fields = {t: {k: f for k, f, _ in leaves(m)} for t, m in models.items()}
+    order = ["type"]
+    for t in models:
+        order += [k for k in fields[t] if k not in order]
     rows = []
     for key in order:
-        f = iekf[key]
-        applies = "both" if key in ekf else "iekf"
-        typ = "`iekf` \\| `ekf`" if key == "type" else fmt_type(f.annotation, f.metadata)
+        types = [t for t in models if key in fields[t]]
+        f = fields[types[0]][key]
+        applies = "all" if len(types) == len(models) else ", ".join(types)
+        typ = " \\| ".join(f"`{t}`" for t in models) if key == "type" else fmt_type(f.annotation, f.metadata)
+        default = " / ".join(f"{t}: {_default(fields[t][key])}" for t in types) if len(
+            {_default(fields[t][key]) for t in types}) > 1 else _default(f)  # fmt: skip
         meaning = FILTER_MEANINGS.get(key) or f.description or ""
-        rows.append((key, applies, typ, unit_of(key), _default(f), meaning))
+        rows.append((key, applies, typ, unit_of(key), default, meaning))
     return rows
 
 

@@ -704,6 +704,64 @@ def block_nees_case(run_dir: Path, n_trials: int) -> pd.DataFrame:
     return out
 
 
+# ============================================================================= all estimators (issue 10)
+
+ESTIMATOR_FILTERS = [
+    {"type": "iekf"}, {"type": "mekf"}, {"type": "ekf"}, {"type": "ekf", "name": "ekf_iterated_first", "first_update": "iterated"},
+    {"type": "ukf"}, {"type": "ukf", "name": "ukf_iterated_first", "first_update": "iterated"},
+]  # fmt: skip
+ESTIMATOR_STARTS = {"thesis start (truth + N(0, P0))": "truth_plus_noise", "start from the first frame": "measurements"}
+
+
+def run_estimators(case: str, jobs: int, trials: int | None) -> dict[str, Path]:
+    """Case ``case`` with every estimator on the same draws, once per start; returns the run directories."""
+    from stereopose_mc.config import load_scenario
+    from stereopose_mc.mc import engine
+
+    out = {}
+    for title, method in ESTIMATOR_STARTS.items():
+        over = {"filters": ESTIMATOR_FILTERS, "initial_estimate": {"method": method}}
+        if trials:
+            over["trials"] = trials
+        scn = load_scenario(ROOT / "configs" / f"case{case}.yaml", over)
+        d = RUNS / f"estimators-case{case}-{method}"
+        print(f"$ spmc run configs/case{case}.yaml (filters: all six variants, initial_estimate: {method})", flush=True)
+        engine.run(scn, d, engine.RunOptions(jobs=jobs, timeseries="none", overwrite=True, command=["make_validation"]))
+        out[title] = d
+    return out
+
+
+def estimators_section(case: str, dirs: dict[str, Path]) -> tuple[str, list[Table]]:
+    """Markdown: per start and filter, lost trials, consistency (NEES/dof per block, NIS) and median errors."""
+    from stereopose_mc.core import state as st
+    from stereopose_mc.outputs import consistency
+
+    lines, tabs = [], []
+    for title, d in dirs.items():
+        r = load_run(d)
+        t = r.config["time"]
+        steps = int(round((t["duration_s"] - t["error_window_start_s"]) / t["dt_s"])) + 1
+        n = st.size(len(r.config["target"]["feature_points_m"]))
+        tb = Table(f"estimators-{case}-{d.name.rsplit('-', 1)[-1]}", ["filter", "not converged", "NEES/dof gauge", "full", "rho", "rho_dot",
+                                                  "omega", "attitude", "points", "k", "NIS/dof", *LABELS.values()], 1)  # fmt: skip
+        verdicts = []
+        for label in r.filters:
+            g = r.trials[r.trials["filter"] == label]
+            c = consistency.summarize(r.trials, label, n, steps)
+            ok = g[~g["diverged"]]
+            med = [float(np.median(ok[e])) if len(ok) else float("nan") for e in ERROR_NAMES]
+            nees = [c.nees.get(k, float("nan")) for k in ("nees_gauge", "nees", "nees_rho", "nees_rho_dot", "nees_omega",
+                                                          "nees_attitude", "nees_feature_points", "nees_k")]  # fmt: skip
+            tb.add(label, f"{int(g['diverged'].sum())} / {len(g)}", *nees, c.nis_ratio, *med)
+            if c.trials:
+                verdicts.append(c.verdict())
+        tabs.append(tb)
+        lines.append(f"### Case {case}, {title}\n")
+        lines.append(tb.markdown() + "\n")
+        lines.append("\n".join(f"- {v}" for v in verdicts) + "\n")
+    return "\n".join(lines), tabs
+
+
 # ============================================================================= loading
 
 
@@ -987,7 +1045,8 @@ def old_nis_window_lost(ts: pd.DataFrame | None, label: str, bounds: dict[str, A
 
 def write_doc(runs: dict[str, RunTables], stats: dict[str, CaseStats], findings: dict[str, list[Finding]],
               bn: pd.DataFrame | None, phases: dict[str, float], timing_note: str, figures: dict[str, list],
-              cross_fig: str | None, crosscheck: float | None, jobs: int = 2) -> tuple[str, list[Table]]:  # fmt: skip
+              cross_fig: str | None, crosscheck: float | None, jobs: int = 2,
+              estimators: tuple[str, list[Table]] | None = None) -> tuple[str, list[Table]]:  # fmt: skip
     """The markdown text of docs/validation.md and its tables."""
     all_tables: list[Table] = []
 
@@ -1156,6 +1215,17 @@ def write_doc(runs: dict[str, RunTables], stats: dict[str, CaseStats], findings:
 
     # ---------------------------------------------------------------- run time
     ph, ct = runtime_tables(stats, phases)
+    if estimators is not None:
+        w("## All estimators and both starts (issue 10)\n")
+        w("Every estimator of docs/filters.md on the same draws of case B, with the default process noise and "
+          "divergence rules, once from the thesis's start and once from the first stereo frame "
+          "(`initial_estimate: measurements`). NEES/dof: median over the converged trials of the time-averaged "
+          "(t >= 10 s) NEES divided by its degrees of freedom (error state n - 1 = 29, gauge-projected n - 4 = 26, "
+          "blocks 3, 3, 3, 3, 15, 2); NIS/dof: median time-averaged NIS per measurement dimension (95 % band of "
+          "one trial: about 0.956-1.045); errors: medians over the converged trials. 'Not converged' includes "
+          "the `inconsistent` trials.\n")
+        w(estimators[0])
+        all_tables.extend(estimators[1])
     w("## Run time\n")
     w(f"{timing_note} Phases of the last full run:\n")
     w(tab(ph) + "\n")
@@ -1414,7 +1484,16 @@ def main(argv: list[str] | None = None) -> int:
                                            "phases": {k: round(v, 1) for k, v in phases.items()}}, indent=1) + "\n")
         note = (f"`make validation` took {fmt(total, 3)} s ({fmt(total / 60, 2)} min) on this machine ({host}), "
                 f"measured by the script (time.perf_counter) when this page was generated ({date}).")
-    text, tabs = write_doc(runs, stats, findings, bn, phases, note, figures, cross, crosscheck, args.jobs)
+    est = None
+    if "B" in cases:
+        t0 = time.perf_counter()
+        est_dirs = ({t: RUNS / f"estimators-caseB-{m}" for t, m in ESTIMATOR_STARTS.items()} if args.skip_runs
+                    else run_estimators("B", args.jobs, args.trials))  # fmt: skip
+        if all((d / "trials.parquet").is_file() for d in est_dirs.values()):
+            est = estimators_section("B", est_dirs)
+        if not args.skip_runs:
+            phases["all estimators, case B (2 runs)"] = time.perf_counter() - t0
+    text, tabs = write_doc(runs, stats, findings, bn, phases, note, figures, cross, crosscheck, args.jobs, est)
     recs = [r for t in tabs for r in t.records()]
     pd.DataFrame(recs, columns=["table", "row", "column", "value", "text"]).to_csv(SUMMARY_CSV, index=False,
                                                                                    float_format="%.10g")

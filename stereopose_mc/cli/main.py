@@ -10,7 +10,7 @@ import sys
 import typer
 
 from . import dynamics_cmd, inertia_cmd, observability_cmd, report_cmds, run_cmds, scenario_cmds  # noqa: F401
-from . import sweep_cmd  # noqa: F401  (each module registers its commands)
+from . import sweep_cmd, tune_cmd  # noqa: F401  (each module registers its commands)
 from .app import app
 
 

@@ -28,13 +28,13 @@ import yaml
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from ..core import quaternion as qt
-from .schema import EKFConfig, IEKFConfig, MeasurementsConfig, Scenario, Vec3
+from .schema import EKFConfig, IEKFConfig, MEKFConfig, MeasurementsConfig, Scenario, UKFConfig, Vec3
 
 Loc = tuple[Any, ...]
 
 #: The filter types a ``filters`` entry may name (the discriminator tags of the union).
 FILTER_MODELS: dict[str, type[BaseModel]] = {
-    typing.get_args(m.model_fields["type"].annotation)[0]: m for m in (IEKFConfig, EKFConfig)
+    typing.get_args(m.model_fields["type"].annotation)[0]: m for m in (IEKFConfig, EKFConfig, MEKFConfig, UKFConfig)
 }
 FILTER_TYPES: tuple[str, ...] = tuple(FILTER_MODELS)
 

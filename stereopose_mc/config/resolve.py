@@ -11,7 +11,8 @@ from ..core import state as st
 from ..core.orbit import Orbit
 from ..core.perturbed import Perturbations
 from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
-from .schema import CovarianceConfig, EKFConfig, IEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
+from .schema import (CovarianceConfig, EKFConfig, IEKFConfig, MEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig,
+                     Scenario, UKFConfig)  # fmt: skip
 
 DEG = np.pi / 180.0
 Array = NDArray[np.float64]
@@ -47,6 +48,8 @@ class Setup:
     alpha_sigma_floor: float = 1e-9  # rad/s^2
     sensor: SensorSetup = SensorSetup()  # pixel camera, tracker faults (config/sensor.py)
     perturbations: Perturbations | None = None  # perturbed truth (core/perturbed.py); None: Keplerian relative model
+    initial_estimate: str = "truth_plus_noise"  # or "measurements" (filters/initialization.py)
+    com_sigma: float = 1.0  # m, centre of mass about the points' centroid (measurements start)
 
     @property
     def n_points(self) -> int:
@@ -105,6 +108,8 @@ def setup_of(s: Scenario) -> Setup:
         **_alpha_options(m.inertia_pseudo_measurement, s.time.dt_s),
         sensor=sensor,
         perturbations=perturbations_of(s),
+        initial_estimate=s.initial_estimate.method,
+        com_sigma=s.initial_estimate.centre_of_mass_sigma_m,
     )
 
 
@@ -141,7 +146,7 @@ class FilterSetup:
     """A filter's own tuning in SI: R's standard deviations and Q's diagonal."""
 
     label: str
-    kind: str  # "ekf" | "iekf"
+    kind: str  # "ekf" | "iekf" | "mekf" | "ukf"
     sigma_image: float
     sigma_flow: float
     sigma_disparity: float
@@ -155,14 +160,25 @@ class FilterSetup:
     step_control: str = "none"
     stopping: str = "mahalanobis"
     gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
+    first_update: str = "ekf"  # EKF only: "iterated" runs the IEKF at the first update
+    ukf_alpha: float = 0.5  # UKF sigma-point scaling (Merwe): alpha, beta, kappa
+    ukf_beta: float = 2.0
+    ukf_kappa: float = 0.0
 
 
-def filter_setup_of(f: EKFConfig | IEKFConfig, s: Setup) -> FilterSetup:
+def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup) -> FilterSetup:
     r = f.measurement_noise
     if s.sensor.pixels is not None:  # noise given in pixels -> normalized units (config/sensor.py)
         px = {"image_sigma": r.image_sigma_px, "flow_sigma": r.flow_sigma_pxps}
         r = r.model_copy(update={k: v / s.sensor.pixels.f_px for k, v in px.items() if v is not None})
     extra = {}
+    if isinstance(f, EKFConfig):
+        extra = dict(first_update=f.first_update)
+    if isinstance(f, MEKFConfig):
+        extra = dict(tolerance=f.tolerance, max_iterations=f.max_iterations if f.iterated else 1,
+                     step_control=f.step_control, stopping=f.stopping)  # fmt: skip
+    if isinstance(f, UKFConfig):
+        extra = dict(ukf_alpha=f.alpha, ukf_beta=f.beta, ukf_kappa=f.kappa, first_update=f.first_update)
     if isinstance(f, IEKFConfig):
         extra = dict(
             tolerance=f.tolerance, max_iterations=f.max_iterations, step_control=f.step_control, stopping=f.stopping

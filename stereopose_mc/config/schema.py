@@ -301,13 +301,13 @@ class FilterMeasurementNoise(_Model):
 
 
 class ProcessNoiseConfig(_Model):
-    """The filter's Q, variances added per step, per state block."""
+    """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
 
-    rho_m2: NonNeg = 0.0
+    rho_m2: NonNeg = 1e-5
     rho_dot_m2ps2: NonNeg = 1e-12
     omega_deg2ps2: NonNeg = 1e-10
-    q: NonNeg = 1e-12
-    feature_points_m2: NonNeg = 0.0
+    q: NonNeg = 3e-11
+    feature_points_m2: NonNeg = 3e-9
     k: NonNeg = 1e-10
 
 
@@ -339,17 +339,48 @@ class _FilterBase(_Model):
 
 class EKFConfig(_FilterBase):
     type: Literal["ekf"]
+    first_update: Literal["ekf", "iterated"] = Field(
+        default="ekf",
+        description="'iterated': the first update (t = dt) runs the IEKF's iterations (line search, Mahalanobis "
+        "stopping, tolerance 0.01, at most 10), the later ones are plain EKF updates",
+    )
 
 
-class IEKFConfig(_FilterBase):
-    type: Literal["iekf"]
+class _GaussNewtonBase(_FilterBase):
+    """The iterated update's knobs (docs/filters.md, IEKF)."""
+
     tolerance: Pos = 0.01
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 10
     step_control: Literal["line_search", "levenberg_marquardt", "none"] = "line_search"
     stopping: Literal["mahalanobis", "prior", "scaled", "raw"] = "mahalanobis"
 
 
-FilterConfig = Annotated[Union[IEKFConfig, EKFConfig], Field(discriminator="type")]
+class IEKFConfig(_GaussNewtonBase):
+    type: Literal["iekf"]
+
+
+class MEKFConfig(_GaussNewtonBase):
+    """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error."""
+
+    type: Literal["mekf"]
+    iterated: bool = Field(default=True, description="run the IEKF's Gauss-Newton iterations in the update")
+
+
+class UKFConfig(_FilterBase):
+    """Unscented filter with multiplicative attitude (docs/filters.md); scaled sigma points (Merwe)."""
+
+    type: Literal["ukf"]
+    alpha: Annotated[float, Field(gt=0, le=1)] = 0.5
+    beta: NonNeg = 2.0
+    kappa: float = 0.0
+    first_update: Literal["ukf", "iterated"] = Field(
+        default="ukf",
+        description="'iterated': the first update (t = dt) is the MEKF's iterated update (line search, Mahalanobis "
+        "stopping, tolerance 0.01, at most 10 iterations), the later ones unscented",
+    )
+
+
+FilterConfig = Annotated[Union[IEKFConfig, EKFConfig, MEKFConfig, UKFConfig], Field(discriminator="type")]
 
 
 class DivergenceConfig(_Model):
@@ -370,6 +401,30 @@ class DivergenceConfig(_Model):
         default=0.5,
         description="a gated filter is lost when, from nis_start_s on, its gate rejected at least this fraction of "
         "the features it was given at each of nis_window_steps steps",
+    )
+    sigma_ratio: Pos = Field(
+        default=30.0,
+        description="a trial is 'inconsistent' when a block's error stays above sigma_ratio times the filter's own "
+        "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
+    )
+    nees_factor: Pos = Field(
+        default=1000.0,
+        description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
+        "chi-square 99.9% bound over nis_window_steps steps",
+    )
+
+
+class InitialEstimateConfig(_Model):
+    """How the filters start (docs/filters.md, Initial estimate)."""
+
+    method: Literal["truth_plus_noise", "measurements"] = Field(
+        default="truth_plus_noise",
+        description="truth_plus_noise: x0 ~ N(truth, P0) (the thesis); measurements: rho, rho_dot, omega and the "
+        "feature points from the first stereo frame (triangulation and a rigid-body fit), q and k from the "
+        "N(truth, P0) draw",
+    )
+    centre_of_mass_sigma_m: Pos = Field(
+        default=1.0, description="measurements: standard deviation of the centre of mass about the points' centroid"
     )
 
 
@@ -492,6 +547,7 @@ class Scenario(_Model):
         "and converted to the leader's LVLH; null = the thesis's Keplerian, torque-free relative model",
     )
     dispersions: DispersionsConfig | None = None
+    initial_estimate: InitialEstimateConfig = InitialEstimateConfig()
 
     @model_validator(mode="after")
     def _pixel_noise_needs_pixels(self):

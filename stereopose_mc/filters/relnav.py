@@ -135,8 +135,10 @@ def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSet
     if keep is not None:
         measure = gating.masked_measure(measure, step.y, rows, keep, C)
     used = np.full(rows.size, nvis) if keep is None else keep.sum(axis=-1)
-    if fs.kind == "ekf":
+    if fs.kind == "ekf" and not (fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9)):
         u = kf.ekf_update(x, P, y, measure, R, rows)
+    elif fs.kind == "ekf":  # first_update: iterated, with the IEKF's defaults
+        u = kf.iekf_update(x, P, y, measure, R, rows, tol=0.01, max_iter=10, step_control="line_search")
     else:
         u = kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
                            step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip

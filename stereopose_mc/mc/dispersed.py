@@ -35,6 +35,7 @@ from ..sim import dispersions as sd
 from ..sim import measurements as meas
 from ..sim.dispersions import exact_measurements, noisy_measurements, truth_of
 from ..sim.truth import Truth
+from ..filters.initialization import measurement_start
 from ..sim.faults import Faults, apply_faults
 from .trial import Bounds, ChunkResult, FilterRun, run_filter
 
@@ -103,9 +104,12 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -
                 kept_all[rows[m]], outlier_all[rows[m]] = f_m.kept, f_m.outlier
             tg = Truth(t=truth.t, nu=truth.nu[m], nu_dot=truth.nu_dot[m], nu_ddot=truth.nu_ddot[m], x=truth.x[m],
                        alpha=truth.alpha[m])  # fmt: skip
+            x0_m, P0_m = x0_hat[m], None
+            if fsetup.initial_estimate == "measurements":  # the filters' own start from the first frame
+                x0_m, P0_m = measurement_start(fsetup, filters[0], y_m[:, 0], exact.visible[m[0]][0], x0_m)
             for fs in filters:
                 t1 = time.perf_counter()
-                r = run_filter(x0_hat[m], fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m)
+                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m, P0_m)
                 _put(runs[fs.label], r, rows[m])
                 runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
                                             else np.zeros(B))  # fmt: skip

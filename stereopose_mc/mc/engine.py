@@ -85,7 +85,7 @@ def prepare(scn: Scenario) -> Prepared:
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
     bounds = Bounds(d.rho_m, d.rho_dot_mps, d.omega_degps, d.k, d.nis_ratio, d.nis_window_steps, d.nis_start_s,
-                    d.gated_fraction)
+                    d.gated_fraction, d.sigma_ratio, d.nees_factor)  # fmt: skip
     return Prepared(scn, setup, truth, exact, filters, bounds)
 
 
@@ -329,7 +329,7 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     rundir.atomic_write_text(out / "percentiles.csv", pt.to_csv(index=False, float_format="%.10g"))
     _write_table(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
     rundir.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
-                             + tables.percentiles_markdown(pt))  # fmt: skip
+                             + tables.percentiles_markdown(pt, trials))  # fmt: skip
     return trials, pt
 
 

@@ -26,10 +26,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
+from ..core import errorstate as es
 from ..core import quaternion as qt
 from ..core import state as st
 from ..core import kalman as kf
-from ..filters import relnav
+from ..filters import estimators, relnav
+from ..filters.initialization import measurement_start
+from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
 from ..sim.faults import Faults, apply_faults
@@ -52,6 +55,8 @@ class Bounds:
     nis_window_steps: int = 10
     nis_start_s: float = 10.0
     gated_fraction: float = 0.5
+    sigma_ratio: float = 30.0  # 'inconsistent': a block's error over its claimed sigma (mc/divergence.py)
+    nees_factor: float = 1000.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -109,11 +114,13 @@ class FilterRun:
     converged: Array  # (B, K+1) bool
     diverged_step: Array  # (B,) int, -1 if not diverged
     diverged_reason: list[str] = field(default_factory=list)
+    nees_parts: dict[str, Array] = field(default_factory=dict)  # nees_<block>, nees_gauge: (B, K+1)
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
     P_final: Array | None = None  # (B, n, n)
     dof: Array | None = None  # (B, K+1) per-trial measurement dimension (features dropped or gated out removed)
     gated: Array | None = None  # (B, K+1) int: features rejected by the filter's gate at each step
+    k_sigma_ratio: Array | None = None  # (B, 2) final / initial standard deviation of k1, k2
 
 
 def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
@@ -141,6 +148,7 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
 def run_filter(
     x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
     kept: Array | None = None,
+    P0: Array | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
@@ -163,9 +171,12 @@ def run_filter(
     div_step = np.full(B, -1)
     reasons = [""] * B
     x = x0_hat.copy()
-    P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy()
+    P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
+    if estimators.error_state(fs.kind):
+        P = es.to_error_covariance(x, P)
     err[:, 0] = errors(x, true_state(truth.x, 0, np.arange(B)))
-    nees[:, 0] = _nees(x, P, true_state(truth.x, 0, np.arange(B)))
+    parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
+    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)))
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -180,7 +191,7 @@ def run_filter(
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
-            xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = estimators.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -210,7 +221,7 @@ def run_filter(
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
-                nees[active, k] = _nees(u.x, u.P, true_state(truth.x, k, active))
+                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active))
             except np.linalg.LinAlgError:
                 pass
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
@@ -229,14 +240,20 @@ def run_filter(
                     if not bad[j]:
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
+            incons = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio, bounds.nees_factor)
+            bad = [b or c for b, c in zip(bad, incons)]
         keep = np.ones(active.size, bool)
         for j, i in enumerate(active):
             if bad[j]:
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
         active = active[keep]
-    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, x_final=x, P_final=P,
-                     dof=dof, gated=gated)
+    ks = slice(P.shape[-1] - 2, P.shape[-1])  # k is last in the state and in the error state
+    with np.errstate(all="ignore"):
+        k_ratio = np.sqrt(np.diagonal(P[:, ks, ks], axis1=-2, axis2=-1) / setup.P0_diag[-2:])
+    return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, nees_parts=parts,
+                     x_final=x, P_final=P, k_sigma_ratio=k_ratio,
+                     dof=dof, gated=gated)  # fmt: skip
 
 
 def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:
@@ -263,13 +280,13 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     A trial whose own update fails gets NaN state and covariance.
     """
     try:
-        return relnav.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+        return estimators.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
     except np.linalg.LinAlgError:
         pass
     parts, reasons = [], []
     for j in range(rows.size):
         try:
-            parts.append(relnav.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
+            parts.append(estimators.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
             reasons.append("")
         except np.linalg.LinAlgError as exc:
             parts.append(None)
@@ -277,25 +294,37 @@ def _robust_update(xa, Pa, step, rows, fs, setup):
     ok = next(p for p in parts if p is not None) if any(p is not None for p in parts) else None
     m = ok.nu.shape[-1] if ok is not None else step.y.shape[-1]
     n = xa.shape[-1]
+    ne = Pa.shape[-1]
 
     def cat(attr, shape, fill):
         return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
 
-    u = relnav.GatedUpdate(cat("x", (n,), np.nan), cat("P", (n, n), np.nan), cat("nu", (m,), np.nan),
+    if ok is None or not hasattr(ok, "features_used"):  # MEKF/UKF updates without the gate's counts
+        u = kf.Update(cat("x", (n,), np.nan), cat("P", (ne, ne), np.nan), cat("nu", (m,), np.nan),
+                      cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
+        return u, reasons
+    u = relnav.GatedUpdate(cat("x", (n,), np.nan), cat("P", (ne, ne), np.nan), cat("nu", (m,), np.nan),
                            cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False),
                            cat("rejected", (), 0), cat("features_used", (), 0))  # fmt: skip
     return u, reasons
 
 
-def _nees(x: Array, P: Array, x_true: Array) -> Array:
-    """``e^T P^-1 e`` of the full state error (q sign-aligned)."""
-    from ..core.kalman import mahalanobis2
+def nees_of(x: Array, P: Array, x_true: Array) -> dict[str, Array]:
+    """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
+    ``P`` is the covariance of the full state ``(B, n, n)`` (mapped to the error state at
+    the estimate) or already of the error state ``(B, n-1, n-1)`` (MEKF, UKF).
+    """
     with np.errstate(all="ignore"):
-        try:
-            return mahalanobis2(state_error(x, x_true), P)
-        except np.linalg.LinAlgError:
-            return np.full(x.shape[0], np.nan)
+        P_eps = es.to_error_covariance(x, P) if P.shape[-1] == x.shape[-1] else P
+        return es.nees_all(es.estimation_error(x, x_true), P_eps, x)
+
+
+def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array) -> None:
+    v = nees_of(x, P, x_true)
+    nees[rows, k] = v["nees"]
+    for name, a in parts.items():
+        a[rows, k] = v[name]
 
 
 @dataclass
@@ -313,6 +342,9 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
     noisy = meas.noisy(setup, exact, draws)
     x0_hat = meas.initial_estimates(setup, draws)
+    P0 = None
+    if setup.initial_estimate == "measurements":
+        x0_hat, P0 = measurement_start(setup, filters[0], noisy.y[:, 0], exact.visible[0], x0_hat)
     y, faults = noisy.y, None
     if setup.sensor.faults:
         y, faults = apply_faults(setup.sensor, seed, trials, noisy.y, exact.y, exact.visible)
@@ -320,7 +352,7 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     for fs in filters:
         t1 = time.perf_counter()
         r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
-                       None if faults is None else faults.kept)  # fmt: skip
+                       None if faults is None else faults.kept, P0)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

@@ -12,9 +12,10 @@ Figures (``<f>`` is a filter label, made safe for file names):
   where both filters converged (only when the run has an EKF and an IEKF);
 - ``time-<f>``: error vs time over the trials of ``timeseries.parquet``: the median and the
   central 70 % (15th-85th percentile) and 90 % (5th-95th) bands, log y;
-- ``nees-<f>`` / ``nis-<f>``: the mean over trials of NEES / NIS vs time with the two-sided
+- ``nees-<f>`` / ``nis-<f>``: the median and 5th-95th percentile band over trials of NEES / NIS vs
+  time (they set the axis), and the mean over trials with the two-sided
   95 % band of that mean for a consistent filter,
-  ``[chi2.ppf(0.025, M n), chi2.ppf(0.975, M n)] / M`` (``M`` trials alive at the step,
+  ``[chi2.ppf(0.025, M d), chi2.ppf(0.975, M d)] / M`` with ``d = n - 1`` (``M`` trials alive at the step,
   ``n`` = state dimension for NEES, the step's measurement dimension for NIS);
 - ``runtime``: histogram of the per-trial compute time (``timing.parquet``).
 
@@ -263,6 +264,7 @@ class Consistency:
     hi: np.ndarray
     M: np.ndarray
     dof: np.ndarray
+    quantiles: np.ndarray | None = None  # (3, steps): 5th, 50th, 95th percentile over the trials alive
 
     @property
     def inside(self) -> tuple[int, int]:
@@ -291,7 +293,10 @@ def consistency(ts: pd.DataFrame, label: str, column: str, dof: int | None) -> C
     else:
         d = np.full(t.shape, float(dof))
     lo, hi = mean_band(M, d)
-    return Consistency(t, mean, lo, hi, M, d)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        q = np.nanpercentile(A, [5, 50, 95], axis=0) if A.size else None
+    return Consistency(t, mean, lo, hi, M, d, q)
 
 
 def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> Figure:
@@ -301,14 +306,23 @@ def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> 
     ax = fig.subplots()
     ok = np.isfinite(c.lo)
     ax.fill_between(c.t[ok], c.lo[ok], c.hi[ok], color="#c7e9c0", lw=0, label="95 % band for a consistent filter")
-    ax.plot(c.t, c.mean, color="#238b45", lw=1.5, label=f"mean {what} over trials")
+    ax.plot(c.t, c.mean, color="#238b45", lw=1.0, label=f"mean {what} over trials")
+    if c.quantiles is not None:
+        q05, q50, q95 = c.quantiles
+        ax.fill_between(c.t, q05, q95, color="#6baed6", alpha=0.25, lw=0, label="5th-95th percentile over trials")
+        ax.plot(c.t, q50, color="#08519c", lw=1.8, label=f"median {what} over trials")
+        # the scale follows the median and the bands, not a mean that one diverging trial can dominate
+        v = np.concatenate([q05[np.isfinite(q05)], q95[np.isfinite(q95)], c.lo[ok], c.hi[ok], c.dof[ok]])
+        v = v[v > 0]
+        if v.size:
+            ax.set_ylim(0.5 * np.min(v), 2.0 * np.max(v))
     ax.plot(c.t[ok], c.dof[ok], color="k", ls=":", lw=1, label=f"expected ({dof_text})")
     ax.set_yscale("log")
     _clip_y(ax, c)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(what)
     m = int(np.max(c.M)) if c.M.size else 0
-    ax.set_title(f"{label}: mean {what} over up to {m} trials; inside the band at {inside} of {steps} steps")
+    ax.set_title(f"{label}: {what} over up to {m} trials; mean inside its band at {inside} of {steps} steps", fontsize=10)
     ax.legend(fontsize=8)
     return fig
 
@@ -442,13 +456,15 @@ def build_figures(
                 c = consistency(timeseries, label, "nees", dof)
                 add(consistency_figure(c, label, "NEES", f"{dof} dof (n = {state_dim}, unit quaternion)"),
                     f"nees-{s}", f"{label}: NEES vs time",
-                    f"Mean NEES over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*{dof})/M "
+                    f"Median and 5th-95th percentile of the NEES over the trials alive at each step (the axis follows "
+                    f"them), and their mean with its band chi2.ppf([0.025, 0.975], M*{dof})/M "
                     f"with {dof} = n - 1 degrees of freedom (the quaternion's norm is not an error direction).")
             else:
                 fs.notes.append(f"{label}: NEES figure skipped: manifest.json has no state_dim")
             c = consistency(timeseries, label, "nis", None)
             add(consistency_figure(c, label, "NIS", "measurement dimension"), f"nis-{s}", f"{label}: NIS vs time",
-                "Mean NIS over the trials alive at each step; band: chi2.ppf([0.025, 0.975], M*m)/M with m the "
+                "Median and 5th-95th percentile of the NIS over the trials alive at each step, and their mean with "
+                "its band chi2.ppf([0.025, 0.975], M*m)/M with m the "
                 "step's measurement dimension (nis_dof).")  # fmt: skip
 
     if timing is None or timing.empty:

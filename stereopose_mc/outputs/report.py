@@ -380,6 +380,25 @@ def divergence_rows(data: RunData) -> list[list[str]]:
     return rows
 
 
+def consistency_verdicts(data: RunData) -> list[str]:
+    """Per filter, the consistency verdict in words (empty for runs without the NEES block columns)."""
+    from . import consistency
+
+    t = data.config.get("time") or {}
+    if not data.state_dim or "nees_gauge_mean" not in data.trials or not isinstance(t, dict):
+        return []
+    try:
+        dt, dur, w = float(t.get("dt_s", 1.0)), float(t.get("duration_s", 100.0)), float(t.get("error_window_start_s", 0))
+    except (TypeError, ValueError):
+        return []
+    steps = int(round((dur - w) / dt)) + 1
+    out = []
+    for label in data.filters:
+        c = consistency.summarize(data.trials, label, data.state_dim, steps)
+        out.append(c.verdict() if c.trials else f"{label}: no converged trial, no consistency to judge.")
+    return out
+
+
 def diagnostics_rows(data: RunData) -> list[list[str]]:
     """Per filter: median NEES/NIS window means, mean IEKF iterations, trials with unconverged IEKF steps."""
     rows = []
@@ -445,6 +464,13 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
                 "dimensionless.</p>")  # fmt: skip
 
     body.append(results_summary_html(data, pt))
+    verdicts = consistency_verdicts(data)
+    if verdicts:
+        body.append("<h2>Consistency</h2><ul>" + "".join(f"<li>{esc(v)}</li>" for v in verdicts) + "</ul>")
+        body.append("<p class=\"note\">Medians over the converged trials of the time-averaged (window) NEES per "
+                    "degree of freedom (error state n - 1, gauge-projected n - 4; docs/filters.md) and NIS per "
+                    "measurement dimension; a filter is called consistent when every NEES/dof is at most 2 and the NIS "
+                    "lies in the chi-square 95 % band of one trial's time average.</p>")  # fmt: skip
     body.append("<h2>Percentile tables</h2>")
     for label in data.filters:
         g = pt[pt["filter"] == label]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from ..core import errorstate as es
 from ..mc.trial import ERROR_NAMES, ChunkResult
 
 ERROR_UNITS = {"e_rho": "m", "e_rho_dot": "m/s", "e_omega": "deg/s", "e_theta": "deg", "e_k1": "-", "e_k2": "-"}
@@ -24,10 +25,13 @@ COLUMN_UNITS = {
     "iekf_unconverged_steps": "-", "nees_mean": "-", "nis_mean": "-",
     "step": "-", "t": "s", "nees": "-", "nis": "-", "nis_dof": "-", "iterations": "-", "converged": "-", "gated": "-",
     "gated_features": "-", "dropped_features": "-", "outlier_features": "-",
+    "nis_ratio_mean": "-", "nis_dof_mean": "-", "final_sigma_ratio_k1": "-", "final_sigma_ratio_k2": "-",
     "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
 }  # fmt: skip
+NEES_PARTS = tuple(k for k in es.nees_dof(es.BLOCK_PROBE_N) if k != "nees")  # nees_<block>, nees_gauge
+COLUMN_UNITS.update({n: "-" for n in NEES_PARTS} | {f"{n}_mean": "-" for n in NEES_PARTS})
 TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged",
-              "gated"]
+              "gated", *NEES_PARTS]  # fmt: skip
 
 
 def window_mask(t: np.ndarray, start: float) -> np.ndarray:
@@ -76,6 +80,14 @@ def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: i
         d["nees_mean"] = nees_mean
         d["nis_mean"] = nis_mean
         d.update(_fault_columns(chunk, r))
+        dof = np.broadcast_to(r.nis_dof if r.dof is None else r.dof, r.nis.shape)  # per trial and step
+        with np.errstate(all="ignore"):
+            d["nis_ratio_mean"] = row_nanmean(np.where(dof > 0, r.nis / np.maximum(dof, 1), np.nan)[:, w])
+        d["nis_dof_mean"] = dof[:, w].mean(axis=1).astype(float)
+        for j, name in enumerate(("k1", "k2")):
+            d[f"final_sigma_ratio_{name}"] = r.k_sigma_ratio[:, j] if r.k_sigma_ratio is not None else np.nan
+        for name in NEES_PARTS:
+            d[f"{name}_mean"] = row_nanmean(r.nees_parts[name][:, w]) if name in r.nees_parts else np.full(B, np.nan)
         frames.append(pd.DataFrame(d))
     return pd.concat(frames, ignore_index=True)
 
@@ -122,6 +134,8 @@ def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None 
         d["iterations"] = r.iterations[sel].reshape(-1).astype(np.int16)
         d["converged"] = r.converged[sel].reshape(-1)
         d["gated"] = (np.zeros(B * K1) if r.gated is None else r.gated[sel].reshape(-1)).astype(np.int16)
+        for name in NEES_PARTS:
+            d[name] = r.nees_parts[name][sel].reshape(-1) if name in r.nees_parts else np.full(B * K1, np.nan)
         frames.append(pd.DataFrame(d))
     return pd.concat(frames, ignore_index=True)
 
@@ -178,12 +192,51 @@ def format_table(pt: pd.DataFrame, label: str, population: str = "converged", ma
     return "\n".join([fmt(head), *map(fmt, body)])
 
 
-def percentiles_markdown(pt: pd.DataFrame) -> str:
+UNOBSERVABLE_RATIO = 0.5  # final / initial sigma of a parameter above which the data did not reveal it
+
+
+def not_observable(trials: pd.DataFrame, label: str) -> dict[str, float]:
+    """Parameters (k1, k2) the converged trials of ``label`` carry at more than half their initial sigma.
+
+    Maps each to its median final / initial standard deviation: the data did not reveal
+    it, and (the trial being converged, so its error is within ``sigma_ratio`` of its own
+    sigma) the filter says so honestly; it is not a failure.
+    """
+    g = trials[(trials["filter"] == label) & ~trials["diverged"].astype(bool)]
+    out = {}
+    for name in ("k1", "k2"):
+        col = f"final_sigma_ratio_{name}"
+        if col in g and len(g):
+            m = float(np.nanmedian(g[col]))
+            if m > UNOBSERVABLE_RATIO:
+                out[name] = m
+    return out
+
+
+def population_note(trials: pd.DataFrame, label: str) -> str:
+    """Which trials the two populations hold: the ids left out of ``converged``, by reason."""
+    g = trials[(trials["filter"] == label) & trials["diverged"].astype(bool)]
+    if g.empty:
+        return "Both populations hold every trial.\n"
+    lines = ["`converged` leaves out these trials (`all` holds them as +inf):\n"]
+    for reason, h in g.groupby(g["diverged_reason"].str.split(":").str[0], sort=True):
+        ids = sorted(int(t) for t in h["trial"])
+        shown = ", ".join(map(str, ids[:30])) + (f", ... ({len(ids) - 30} more)" if len(ids) > 30 else "")
+        lines.append(f"- {reason} ({len(ids)}): {shown}")
+    return "\n".join(lines) + "\n"
+
+
+def percentiles_markdown(pt: pd.DataFrame, trials: pd.DataFrame | None = None) -> str:
     out = []
     for label in dict.fromkeys(pt["filter"]):
         g = pt[pt["filter"] == label].iloc[0]
         n, nd = int(g["trials"]), int(g["diverged"])
         out.append(f"## {label}: {n - nd} of {n} trials converged ({nd} diverged)\n")
+        if trials is not None:
+            out.append(population_note(trials, label))
+            for name, m in not_observable(trials, label).items():
+                out.append(f"{name}: not observable in this run (median final sigma = {m:.2f} x the initial one; "
+                           "carried with its covariance, not a failure).\n")
         out.append("Converged trials only:\n\n" + format_table(pt, label, "converged", markdown=True) + "\n")
         out.append("All trials (a diverged trial counts as +inf):\n\n" + format_table(pt, label, "all", markdown=True) + "\n")
     return "\n".join(out)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
@@ -179,3 +180,21 @@ def test_dispersions_with_a_perturbed_truth_are_refused(tmp_path):
     r = CliRunner().invoke(app, ["validate", str(cfg)])
     assert r.exit_code == 2
     assert "not supported yet" in r.output and "Traceback" not in r.output
+
+
+def test_dispersed_campaign_starts_from_measurements_independently_of_chunking(tmp_path):
+    d = yaml.safe_load(text())
+    d["initial_estimate"] = {"method": "measurements"}
+    scn = load_scenario_text(yaml.safe_dump(d, sort_keys=False), "<test>")
+    engine.run(scn, tmp_path / "a", engine.RunOptions(jobs=1, chunk_size=12, command=["test"]))
+    engine.run(scn, tmp_path / "b", engine.RunOptions(jobs=1, chunk_size=4, command=["test"]))
+    assert (tmp_path / "a" / "trials.parquet").read_bytes() == (tmp_path / "b" / "trials.parquet").read_bytes()
+    ok = ~pd.read_parquet(tmp_path / "a" / "trials.parquet")["invalid"]
+    base = tmp_path / "base"
+    engine.run(load_scenario_text(text(), "<test>"), base, engine.RunOptions(jobs=1, chunk_size=12, command=["test"]))
+    a = pd.read_parquet(tmp_path / "a" / "timeseries.parquet")
+    b = pd.read_parquet(base / "timeseries.parquet")
+    # the start differs from the truth-plus-noise start (the measurement start is really used)
+    s0a = a[a["step"] == 0].reset_index(drop=True)["e_rho"]
+    s0b = b[b["step"] == 0].reset_index(drop=True)["e_rho"]
+    assert ok.any() and not np.allclose(s0a.to_numpy(), s0b.to_numpy(), equal_nan=True)

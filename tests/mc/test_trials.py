@@ -91,7 +91,8 @@ def test_iekf_not_worse_than_ekf_on_case_b():
         m = np.nanmean(r.errors[:, w], axis=1)
         m[r.diverged_step >= 0] = np.inf
         means[r.label] = m
-    dif = means["ekf"] - means["iekf"]  # paired, per trial
+    with np.errstate(invalid="ignore"):
+        dif = np.nan_to_num(means["ekf"] - means["iekf"], nan=0.0, posinf=np.inf)  # paired; both lost: 0
     assert (np.mean(dif, axis=0) > 0).all(), np.mean(dif, axis=0)
 
 

@@ -149,10 +149,12 @@ def test_report_on_a_folder_writes_each_report_and_an_index(run_dir, tmp_path):
     assert index.count('href="full/report.html"') == 2  # iekf and ekf rows
     assert index.count('href="nested/lean/report.html"') == 1
     assert "notes" not in re.findall(r'href="([^"]+)"', index)
-    # index p50 of e_rho for the full run's EKF, computed independently
+    # index p50 of e_rho for the full run's IEKF, computed independently (the plain EKF's trials
+    # of this short case are all marked inconsistent since issue 10, so it has no converged value)
     tf = pd.read_parquet(full / "trials.parquet")
-    v = np.sort(tf.loc[(tf["filter"] == "ekf") & ~tf["diverged"], "e_rho"].to_numpy())
-    row = [ln for ln in index.splitlines() if 'href="full/report.html"' in ln and ">ekf<" in ln][0]
+    v = np.sort(tf.loc[(tf["filter"] == "iekf") & ~tf["diverged"], "e_rho"].to_numpy())
+    assert v.size
+    row = [ln for ln in index.splitlines() if 'href="full/report.html"' in ln and ">iekf<" in ln][0]
     assert f"<td>{v[int(np.ceil(0.5 * v.size)) - 1]:.3g}</td>" in row
 
 

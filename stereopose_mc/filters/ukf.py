@@ -1,0 +1,50 @@
+"""Unscented filter of the relative-navigation problem with a multiplicative attitude.
+
+Sigma points live on the error state of ``core.errorstate`` (``n - 1`` dimensions, the
+attitude as a 3-vector, ``x [+] eps`` the chart), as in Crassidis & Markley's USQUE; the
+kernels are ``core.unscented``. Each sigma point is propagated by the same RK4 as the
+other filters; ``Q`` is the scenario's block Q mapped to the error state
+(``filters/mekf.error_process_noise``); the measurement model is the stacked stereo and
+pseudo-measurement model of ``filters/relnav``. Scaling ``alpha, beta, kappa`` per filter
+entry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..config.resolve import FilterSetup, Setup
+from ..core import dynamics, errorstate as es
+from ..core import kalman as kf
+from ..core import unscented as ut
+from . import mekf, relnav
+from .mekf import error_process_noise
+
+
+def predict(x, P, t, fs: FilterSetup, setup: Setup):
+    """``(x-, P-)`` with ``P`` the error-state covariance."""
+
+    def f(states, _idx):
+        return relnav.renormalize(dynamics.propagate(states, t, setup.dt, setup.orbit, fs.substeps))
+
+    # Q is mapped at the propagated centre point (the mean's chart differs from it by the mean increment)
+    x_c = relnav.renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
+    return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
+                      chart=es.chart, local=es.local)  # fmt: skip
+
+
+def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup) -> kf.Update:
+    if fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9):
+        it = dataclasses.replace(fs, max_iterations=10, tolerance=0.01, step_control="line_search", stopping="mahalanobis")
+        return mekf.update(x, P, step, rows, it, setup)
+    measure = relnav.measurement_model(setup, step)
+    R = relnav.measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
+
+    def h(states, idx):
+        return measure(states, rows[idx], jac=False)[0]
+
+    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa, chart=es.chart)
+    B = x.shape[0]
+    return kf.Update(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool))

@@ -1,0 +1,44 @@
+"""The ``inconsistent`` divergence rule: a trial whose filter claims far less error than it has.
+
+Two tests over the last ``window`` steps (all at or after ``start_s``), per trial:
+
+- **block**: for a block ``b`` of the error state (rho, rho_dot, omega, attitude, feature
+  points, k), the error in claimed standard deviations ``sqrt(NEES_b / dof_b)`` stays above
+  ``sigma_ratio`` at every step of the window (a k error of 6.4 against a claimed sigma of
+  0.05 is 128 sigma);
+- **gauge**: the gauge-projected NEES stays above ``nees_factor`` times the chi-square
+  99.9 % bound of its ``n - 4`` degrees of freedom at every step of the window.
+
+Such a trial is not counted as converged: its reason starts with ``inconsistent``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+Array = NDArray[np.float64]
+
+
+def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, dof: dict[str, int],
+                         sigma_ratio: float, nees_factor: float) -> list[str]:  # fmt: skip
+    """Reason per row of ``rows`` ('' when consistent enough) from NEES histories ``(B, K+1)``."""
+    reasons = [""] * rows.size
+    with np.errstate(invalid="ignore"):
+        for name, a in parts.items():
+            win = a[rows, w0 : k + 1]
+            if name == "nees_gauge":
+                bound = nees_factor * float(stats.chi2.ppf(0.999, dof[name]))
+                low = np.min(win, axis=1)
+                bad = low > bound
+                for j in np.flatnonzero(bad):
+                    reasons[j] = reasons[j] or (f"inconsistent: gauge-projected NEES >= {low[j]:.3g} over "
+                                                f"{k - w0 + 1} steps > {nees_factor:g} x chi2 99.9% bound "
+                                                f"{bound / nees_factor:.3g} ({dof[name]} dof)")  # fmt: skip
+            elif name.startswith("nees_"):
+                sig = np.sqrt(np.min(win, axis=1) / dof[name])
+                for j in np.flatnonzero(sig > sigma_ratio):
+                    reasons[j] = reasons[j] or (f"inconsistent: {name[5:]} error >= {sig[j]:.3g} x its claimed "
+                                                f"sigma over {k - w0 + 1} steps > {sigma_ratio:g}")  # fmt: skip
+    return reasons

@@ -1,0 +1,103 @@
+"""Consistency of a filter over a run: NEES per block and gauge-projected, NIS, in words.
+
+Reads the per-trial window means of ``trials.parquet`` (``nees_mean``, ``nees_<block>_mean``,
+``nees_gauge_mean``, ``nis_ratio_mean``) and summarizes them per filter over the trials
+that did not diverge: the median over trials of the time-averaged NEES divided by its
+degrees of freedom (one convention everywhere, docs/filters.md: the error state has
+``n - 1`` dimensions, the gauge-projected one ``n - 4``), and the median time-averaged
+NIS per measurement dimension against the chi-square 95 % band of one trial's average.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from ..core import errorstate as es
+
+NEES_LIMIT = 2.0  # a median NEES/dof above this is called overconfident (issue 10's target)
+NEES_LOW = 0.2  # below this: pessimistic (the filter claims far more uncertainty than it has)
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """One filter's consistency over the converged trials of a run."""
+
+    label: str
+    trials: int
+    nees: dict[str, float]  # median NEES/dof per key of errorstate.nees_dof
+    dof: dict[str, int]
+    nis_ratio: float  # median time-averaged NIS / dof
+    nis_band: tuple[float, float]  # 95 % chi-square band of one trial's time average / dof
+
+    @property
+    def overconfident(self) -> list[str]:
+        return [k for k, v in self.nees.items() if np.isfinite(v) and v > NEES_LIMIT]
+
+    @property
+    def nis_inside(self) -> bool:
+        return bool(self.nis_band[0] <= self.nis_ratio <= self.nis_band[1])
+
+    @property
+    def consistent(self) -> bool:
+        return not self.overconfident and self.nis_inside
+
+    def verdict(self) -> str:
+        """The finding in words, with the numbers."""
+        g, full = self.nees.get("nees_gauge", np.nan), self.nees.get("nees", np.nan)
+        head = (f"{self.label}: median time-averaged NEES/dof {g:.3g} gauge-projected ({self.dof['nees_gauge']} dof), "
+                f"{full:.3g} full ({self.dof['nees']} dof); NIS/dof {self.nis_ratio:.3g} "
+                f"(95 % band {self.nis_band[0]:.3g}-{self.nis_band[1]:.3g})")
+        if self.consistent:
+            return head + ": consistent."
+        bad = []
+        if self.overconfident:
+            worst = max(self.overconfident, key=lambda k: self.nees[k])
+            bad.append(f"overconfident in {', '.join(_name(k) for k in self.overconfident)} (worst "
+                       f"{_name(worst)}: {self.nees[worst]:.3g} x its dof, limit {NEES_LIMIT:g})")
+        if not self.nis_inside:
+            side = "above" if self.nis_ratio > self.nis_band[1] else "below"
+            bad.append(f"NIS {side} its band by a factor {self.nis_ratio / self.nis_band[1 if side == 'above' else 0]:.3g}")
+        return head + ": NOT consistent: " + "; ".join(bad) + "."
+
+
+def _name(key: str) -> str:
+    return {"nees": "the full state", "nees_gauge": "the gauge-projected state"}.get(key, key.removeprefix("nees_"))
+
+
+def nis_band(dof_mean: float, steps: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided band of a time average over ``steps`` steps of NIS/dof with ``dof_mean`` rows each."""
+    d = max(1.0, dof_mean * steps)
+    lo, hi = stats.chi2.ppf([(1 - level) / 2, (1 + level) / 2], d) / d
+    return float(lo), float(hi)
+
+
+def summarize(trials: pd.DataFrame, label: str, state_dim: int, window_steps: int) -> Consistency:
+    """Consistency of filter ``label`` from a trials table (converged trials only)."""
+    g = trials[(trials["filter"] == label) & ~trials["diverged"].astype(bool)]
+    dof = es.nees_dof(state_dim)
+    med = {}
+    for k, d in dof.items():
+        col = f"{k}_mean"
+        v = g[col].to_numpy(float) / d if col in g else np.array([])
+        v = v[np.isfinite(v)]
+        med[k] = float(np.median(v)) if v.size else float("nan")
+    r = g["nis_ratio_mean"].to_numpy(float) if "nis_ratio_mean" in g else np.array([])
+    r = r[np.isfinite(r)]
+    m = float(np.nanmean(g["nis_dof_mean"])) if "nis_dof_mean" in g and len(g) else 1.0
+    return Consistency(label, len(g), med, dof, float(np.median(r)) if r.size else float("nan"),
+                       nis_band(m, window_steps))  # fmt: skip
+
+
+def table(cs: list[Consistency]) -> pd.DataFrame:
+    """One row per filter: median NEES/dof per block, gauge-projected, NIS/dof and its band."""
+    rows = []
+    for c in cs:
+        row = {"filter": c.label, "trials": c.trials}
+        row.update({k: v for k, v in c.nees.items()})
+        row.update(nis=c.nis_ratio, nis_lo=c.nis_band[0], nis_hi=c.nis_band[1], consistent=c.consistent)
+        rows.append(row)
+    return pd.DataFrame(rows)

@@ -1,0 +1,75 @@
+"""Honest divergence (issue 10): the ``inconsistent`` rule and the EKF's iterated first update."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from scipy import stats
+
+from stereopose_mc.config import load_scenario, load_scenario_text
+from stereopose_mc.config.resolve import filter_setup_of, setup_of
+from stereopose_mc.core import errorstate as es
+from stereopose_mc.mc import engine
+from stereopose_mc.mc.divergence import inconsistent_reasons
+from stereopose_mc.mc.trial import Bounds, run_chunk
+from stereopose_mc.outputs.goldens import config_path
+from stereopose_mc.sim import measurements as meas
+from stereopose_mc.sim.truth import simulate_truth
+
+from scenarios import scenario_dict
+
+DOF = es.nees_dof(30)  # five feature points
+
+
+def _parts(B=3, K=20):
+    return {k: np.full((B, K + 1), float(d)) for k, d in DOF.items() if k != "nees"}
+
+
+def test_block_error_far_beyond_its_sigma_is_inconsistent():
+    parts = _parts()
+    parts["nees_k"][1, 5:] = 2 * 40.0**2  # k error 40 sigma (RMS over its 2 components), sustained
+    parts["nees_rho"][2, 5:] = 3 * 25.0**2  # 25 sigma: below the ratio 30
+    r = inconsistent_reasons(parts, np.arange(3), 11, 20, DOF, sigma_ratio=30.0, nees_factor=1.0)
+    assert r[0] == "" and r[2] == ""
+    assert r[1].startswith("inconsistent: k error >= 40 x its claimed sigma over 10 steps")
+
+
+def test_gauge_nees_must_stay_above_the_bound_for_the_whole_window():
+    bound = stats.chi2.ppf(0.999, DOF["nees_gauge"])
+    parts = _parts()
+    parts["nees_gauge"][0, :] = 1.01 * 10 * bound
+    parts["nees_gauge"][1, :] = 1.01 * 10 * bound
+    parts["nees_gauge"][1, 15] = 0.99 * 10 * bound  # one step back under the bound: not sustained
+    r = inconsistent_reasons(parts, np.arange(3), 11, 20, DOF, sigma_ratio=30.0, nees_factor=10.0)
+    assert r[0].startswith("inconsistent: gauge-projected NEES") and f"({DOF['nees_gauge']} dof)" in r[0]
+    assert r[1] == "" and r[2] == ""
+    # only the rows asked for are judged
+    assert inconsistent_reasons(parts, np.array([2, 0]), 11, 20, DOF, 30.0, 10.0)[1] == r[0]
+
+
+@pytest.mark.slow
+def test_case_b_trial_758_is_not_counted_as_converged():
+    """Trial 758 of case B (k2 error about 6.4 at the end, counted as converged before issue 10)."""
+    scn = load_scenario(config_path("B"))
+    pr = engine.prepare(scn)
+    res = run_chunk(scn.seed, np.array([758]), pr.setup, pr.truth, pr.exact, pr.filters[:1], pr.bounds)
+    r = res.runs[0]
+    assert r.diverged_step[0] > 0, "trial 758 must be marked"
+    assert r.diverged_reason[0].startswith("inconsistent")
+    assert np.nanmax(r.errors[0, :, 5]) > 1.0  # its k2 error was indeed large
+
+
+def test_ekf_iterated_first_update_equals_the_iekf_at_the_first_step_only():
+    scn = load_scenario_text(yaml.safe_dump(scenario_dict(
+        "caseB", time={"dt_s": 1.0, "duration_s": 4.0, "error_window_start_s": 1.0},
+        filters=[{"type": "iekf"}, {"type": "ekf", "first_update": "iterated"}, {"type": "ekf", "name": "plain"}])))  # fmt: skip
+    setup = setup_of(scn)
+    truth = simulate_truth(setup)
+    exact = meas.noise_free(setup, truth)
+    fs = [filter_setup_of(f, setup) for f in scn.filters]
+    iekf, it1, plain = run_chunk(scn.seed, np.arange(3), setup, truth, exact, fs, Bounds()).runs
+    np.testing.assert_array_equal(it1.errors[:, 1], iekf.errors[:, 1])
+    np.testing.assert_array_equal(it1.iterations[:, 1], iekf.iterations[:, 1])
+    assert (it1.iterations[:, 2:] == 1).all() and (iekf.iterations[:, 2:] >= 1).all()
+    assert not np.array_equal(it1.errors[:, 1], plain.errors[:, 1])
