@@ -20,7 +20,10 @@ def run(
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
     chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
-    backend: Optional[str] = typer.Option(None, "--backend", help="loky (default) | threading | dask"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with --kernels compiled, "
+                                          "else loky processes) | loky | threading | dask"),
+    kernels: str = typer.Option("numpy", "--kernels", help="numpy (the reference) | compiled (Numba; same results "
+                                "to round-off, see docs/performance.md)"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
                                             "(default with dask: a LocalCluster); see docs/distributed.md"),
     timeseries: Optional[str] = typer.Option(None, "--timeseries", help="none | summary (first 100 trials) | full "
@@ -37,9 +40,11 @@ def run(
 
     if scheduler is not None and backend not in (None, "dask"):
         fail(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
-    backend = backend or ("dask" if scheduler is not None else "loky")
-    if backend not in ("loky", "threading", "dask"):
-        fail(f"--backend must be loky, threading or dask (got {backend!r})")
+    backend = backend or ("dask" if scheduler is not None else "auto")
+    if backend not in ("auto", "loky", "threading", "dask"):
+        fail(f"--backend must be auto, loky, threading or dask (got {backend!r})")
+    if kernels not in ("numpy", "compiled"):
+        fail(f"--kernels must be numpy or compiled (got {kernels!r})")
     if resume is not None:
         if scenario is not None:
             fail("give either a SCENARIO or --resume DIR, not both")
@@ -56,7 +61,7 @@ def run(
             fail("missing SCENARIO (or --resume DIR)")
         scn = load_or_exit(scenario)
         out = out or Path("runs") / scn.name
-    opts = engine.RunOptions(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend,
+    opts = engine.RunOptions(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend, kernels=kernels,
                              scheduler=scheduler, timeseries=timeseries or "full", overwrite=overwrite,
                              resume=resume is not None, command=list(sys.argv),
                              say=lambda line: typer.echo(f"note: {line}", err=True))  # fmt: skip

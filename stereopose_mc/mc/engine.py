@@ -102,7 +102,10 @@ class ChunkOutput:
     diverged_by: dict[str, int] = field(default_factory=dict)  # per filter
 
 
-def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> ChunkOutput:
+_PREPARE_LOCK = threading.Lock()  # threads of one process share prepare()'s cache: compute it once
+
+
+def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kernels: str = "numpy") -> ChunkOutput:
     """Run one chunk of trials (any process): pure function of its arguments.
 
     BLAS runs single-threaded here: a multithreaded BLAS splits a product or a solve
@@ -110,8 +113,9 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> Ch
     Parallelism comes from the chunks instead.
     """
     with threadpool_limits(limits=1):
-        scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
-        res = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds)
+        with _PREPARE_LOCK:
+            scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
+        res = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels)
     tdf = tables.trials_frame(res, truth.t, setup.window_start, scn.seed)
     ts = None
     if timeseries != "none":
@@ -147,7 +151,8 @@ class RunOptions:
     seed: int | None = None
     jobs: int = 1
     chunk_size: int = 50
-    backend: str = "loky"
+    backend: str = "loky"  # "auto": threads for --kernels compiled (nogil kernels), else loky
+    kernels: str = "numpy"  # numpy | compiled (mc.trial.step_functions)
     scheduler: str | None = None
     timeseries: str = "full"
     overwrite: bool = False
@@ -220,11 +225,28 @@ def _die_with(driver_pid: int) -> None:
     threading.Thread(target=watch, name="spmc-parent-watch", daemon=True).start()
 
 
-def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str):
+def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str,
+                            kernels: str = "numpy"):  # fmt: skip
     """:func:`compute_chunk` in a local worker process that dies with the driver ``driver_pid``."""
     if driver_pid is not None:
         _die_with(driver_pid)
-    return compute_chunk(scenario_json, trials, timeseries)
+    return compute_chunk(scenario_json, trials, timeseries, kernels)
+
+
+def local_backend(opts: RunOptions, n_chunks: int) -> str:
+    """Where the chunks run: ``inline`` (this thread), ``threading``, ``loky`` or ``dask``.
+
+    One job or one chunk runs inline (no pool to start); ``auto`` picks threads for the
+    compiled kernels (they release the GIL, and a thread imports nothing) and loky
+    processes for the numpy kernels (numpy's small-array calls hold the GIL).
+    """
+    if opts.backend == "dask":
+        return "dask"
+    if opts.jobs == 1 or n_chunks <= 1:
+        return "inline"
+    if opts.backend == "auto":
+        return "threading" if opts.kernels == "compiled" else "loky"
+    return opts.backend
 
 
 def connect_dask(address: str | None, jobs: int, info: dict | None = None):
@@ -255,15 +277,22 @@ DASK_CONNECT_TIMEOUT_S = 10
 def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
              info: dict | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
     """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest)."""
-    if opts.jobs == 1 and opts.backend != "dask":
+    where = local_backend(opts, len(chunks))
+    if info is not None:
+        info["ran_as"] = where
+    if where == "inline":
         for c in chunks:
-            yield compute_chunk(scenario_json, c, opts.timeseries)
+            yield compute_chunk(scenario_json, c, opts.timeseries, opts.kernels)
         return
     from joblib import Parallel, delayed, parallel_config
 
-    driver = None if opts.scheduler else os.getpid()  # remote workers outlive us by design
-    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries) for c in chunks)
-    if opts.backend == "dask":
+    driver = None if opts.scheduler or where == "threading" else os.getpid()  # remote workers outlive us by design
+    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries, opts.kernels) for c in chunks)
+    if where == "threading":  # one BLAS limit for all threads (per-thread limits would undo each other)
+        with threadpool_limits(limits=1), parallel_config(backend="threading", n_jobs=opts.jobs):
+            yield from Parallel(return_as="generator_unordered")(calls)
+        return
+    if where == "dask":
         from dask.distributed import KilledWorker
 
         client, cluster = connect_dask(opts.scheduler, opts.jobs, info)
@@ -278,7 +307,7 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
             if cluster is not None:
                 cluster.close()
         return
-    with parallel_config(backend=opts.backend, n_jobs=opts.jobs):
+    with parallel_config(backend=where, n_jobs=opts.jobs):
         yield from Parallel(return_as="generator_unordered")(calls)
 
 
@@ -394,6 +423,8 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         raise RunError(f"--timeseries must be one of {', '.join(TIMESERIES_MODES)}")
     if opts.chunk_size < 1 or opts.jobs < 1:
         raise RunError("--jobs and --chunk-size must be at least 1")
+    if opts.kernels not in ("numpy", "compiled"):
+        raise RunError(f"--kernels must be numpy or compiled (got {opts.kernels!r})")
     too_big = memory_problem(opts.trials or scn.trials, len(scn.filters))
     if too_big:
         raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
@@ -441,7 +472,8 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     n_done, n_div = int(done.size), {f: v.diverged().get(f, 0) for f in spec.filters}
     if progress:
         progress(n_done, scn.trials, dict(n_div))
-    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None}
+    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
+                           "kernels": opts.kernels}  # fmt: skip
     for co in _iterate(scenario_json, chunks, opts, manifest["backend"]):
         _write_chunk(chunk_dir, co, meta, spec)
         n_done += co.trials.size

@@ -140,14 +140,16 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
 
 def run_filter(
     x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
-    kept: Array | None = None,
+    kept: Array | None = None, kernels: str = "numpy",
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
     ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
-    holds the initial estimate's errors.
+    holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
+    ``compiled`` (``filters.compiled``, the same step on the Numba kernels).
     """
+    stepper = step_functions(kernels)
     B, n = x0_hat.shape
     K = setup.steps
     err = np.full((B, K + 1, 6), np.nan)
@@ -180,7 +182,7 @@ def run_filter(
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
-            xa, Pa = relnav.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = stepper.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -195,7 +197,7 @@ def run_filter(
             feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
-            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
+            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, stepper.update)
             e = errors(u.x, truth.x[k])
             bad = _check(u.x, u.P, e, bounds)
         bad = [f or b for f, b in zip(failed, bad)]
@@ -251,20 +253,34 @@ def _omega_var(P: Array) -> Array:
     return np.diagonal(P[:, st.OMEGA, st.OMEGA], axis1=-2, axis2=-1).copy()
 
 
-def _robust_update(xa, Pa, step, rows, fs, setup):
+KERNELS = ("numpy", "compiled")
+
+
+def step_functions(kernels: str):
+    """The module whose ``predict`` and ``update`` run the filter step: ``relnav`` or ``compiled``."""
+    if kernels == "numpy":
+        return relnav
+    if kernels == "compiled":
+        from ..filters import compiled
+
+        return compiled
+    raise ValueError(f"unknown kernels {kernels!r} (expected one of {', '.join(KERNELS)})")
+
+
+def _robust_update(xa, Pa, step, rows, fs, setup, update=relnav.update):
     """The batched update; if linear algebra fails for the batch, trial by trial.
 
     Returns the update and, per trial, the failure reason ('' when it went through).
     A trial whose own update fails gets NaN state and covariance.
     """
     try:
-        return relnav.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+        return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
     except np.linalg.LinAlgError:
         pass
     parts, reasons = [], []
     for j in range(rows.size):
         try:
-            parts.append(relnav.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
+            parts.append(update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
             reasons.append("")
         except np.linalg.LinAlgError as exc:
             parts.append(None)
@@ -302,7 +318,7 @@ class ChunkResult:
 
 
 def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
-              filters: list[FilterSetup], bounds: Bounds) -> ChunkResult:
+              filters: list[FilterSetup], bounds: Bounds, kernels: str = "numpy") -> ChunkResult:
     """Draw the chunk's trials and run every filter on the same draws."""
     t0 = time.perf_counter()
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
@@ -315,7 +331,7 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     for fs in filters:
         t1 = time.perf_counter()
         r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
-                       None if faults is None else faults.kept)  # fmt: skip
+                       None if faults is None else faults.kept, kernels)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

@@ -1,0 +1,83 @@
+"""The filter step of ``filters.relnav`` on the compiled kernels (``--kernels compiled``).
+
+Same functions, same arguments, same results (to round-off) as ``relnav.predict`` and
+``relnav.update``; ``relnav`` stays the readable reference. What changes is where the
+work is done:
+
+- prediction: ``F`` only on its non-zero block, ``Phi`` by Taylor/Horner on that
+  15-column block (``expm`` when the scenario asks for it, on the same block), RK4 fused
+  per trial, ``P- = Phi P Phi^T + Q`` block-structured (``core.kernels.model``);
+- measurement: ``h`` and the row-sparse ``H`` per feature in one compiled pass; the
+  update runs ``relnav.update`` until the compiled update kernels are bound here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..config.resolve import FilterSetup, Setup
+from ..core.kernels import model as km
+from ..core.orbit import leader_kinematics
+from . import relnav
+
+Array = NDArray[np.float64]
+
+
+def _q_batch(Q: Array, B: int, n: int) -> Array:
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
+
+
+def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup) -> Array:
+    """``Phi[:, 0:13, c]`` (``B, 13, 15``) at the posterior ``x`` (the rest of ``Phi`` is the identity)."""
+    lk = leader_kinematics(setup.orbit, t)
+    Fr = km.F_reduced_batch(x, float(lk.r), float(lk.nu_dot), float(lk.nu_ddot), setup.orbit.mu)
+    if fs.transition == "expm":
+        from scipy.linalg import expm
+
+        A = np.zeros(Fr.shape[:-2] + (15, 15))
+        A[:, :13] = Fr * setup.dt
+        return np.ascontiguousarray(expm(A)[:, :13])
+    return km.transition_reduced_batch(Fr, setup.dt, fs.taylor_order)
+
+
+def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
+    """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    B, n = x.shape
+    T = transition_block(x, t, fs, setup)
+    h = setup.dt / fs.substeps
+    lk = leader_kinematics(setup.orbit, t + 0.5 * h * np.arange(2 * fs.substeps + 1))
+    x_pred = km.propagate_batch(x, np.ascontiguousarray(lk.r, dtype=float), np.ascontiguousarray(lk.nu_dot, dtype=float),
+                                np.ascontiguousarray(lk.nu_ddot, dtype=float), h, setup.orbit.mu, fs.substeps, True)
+    return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
+
+
+def measurement_model(setup: Setup, step: relnav.StepMeasurement):
+    """``relnav.measurement_model`` on the compiled ``h``/``H`` (dense ``H`` for ``core.kalman``)."""
+    lk = leader_kinematics(setup.orbit, step.t)
+    vis = np.flatnonzero(step.visible).astype(np.int64)
+    nd, ndd = float(lk.nu_dot), float(lk.nu_ddot)
+    C = 9 if setup.disparity else 8
+    alpha_all = np.ascontiguousarray(step.alpha, dtype=float)
+    cols_cache: dict[int, Array] = {}
+
+    def measure(x: Array, rows: Array, jac: bool = True):
+        x = np.ascontiguousarray(x, dtype=float)
+        n = x.shape[-1]
+        a = alpha_all[rows] if setup.pseudo else np.zeros((x.shape[0], 3))
+        hx, Hval = km.measure_batch(x, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
+                                    np.ascontiguousarray(a), nd, ndd, jac)  # fmt: skip
+        if not jac:
+            return hx, None
+        if n not in cols_cache:
+            cols_cache[n] = km.measurement_columns(n, vis, C, setup.pseudo)
+        return hx, km.dense(Hval, cols_cache[n], n)
+
+    return measure
+
+
+def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
+    """The measurement update (``relnav.update``)."""
+    return relnav.update(x, P, step, rows, fs, setup)
