@@ -8,7 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..outputs.rundir import RunDirError
 from .app import app, fail, load_or_exit
 
 
@@ -36,6 +35,7 @@ def run(
     """Run a Monte Carlo campaign: every filter of the scenario on every trial."""
     from ..mc import engine
     from ..outputs import tables
+    from ..outputs.rundir import RunDirError
     from .progress import figure_progress, progress_reporter
 
     if scheduler is not None and backend not in (None, "dask"):

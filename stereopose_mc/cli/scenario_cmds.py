@@ -8,8 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..config import ScenarioError, load_scenario
-from ..outputs.rundir import RunDirError
 from .app import app, fail, load_or_exit
 
 
@@ -17,6 +15,8 @@ from .app import app, fail, load_or_exit
 def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")) -> None:
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
     (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
+    from ..config import ScenarioError, load_scenario
+
     problems: list[str] = []
     for f in files:
         try:
@@ -37,6 +37,7 @@ def simulate(
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
+    from ..outputs.rundir import RunDirError
     from ..outputs.simulation import simulate as run_simulate
 
     scn = load_or_exit(scenario)
