@@ -8,7 +8,10 @@ work is done:
   15-column block (``expm`` when the scenario asks for it, on the same block), RK4 fused
   per trial, ``P- = Phi P Phi^T + Q`` block-structured (``core.kernels.model``);
 - measurement: ``h`` and the row-sparse ``H`` per feature in one compiled pass; the
-  update runs ``relnav.update`` until the compiled update kernels are bound here.
+  update fused with the measurement model, per trial, on the row-sparse ``H``
+  (``core.kernels.update``): EKF, and IEKF with line search or plain Gauss-Newton steps
+  (Levenberg-Marquardt runs ``relnav.update``); the gate's distances come from the
+  compiled ``h``/``H`` and the numpy gating functions.
 """
 
 from __future__ import annotations
@@ -79,5 +82,64 @@ def measurement_model(setup: Setup, step: relnav.StepMeasurement):
 
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
-    """The measurement update (``relnav.update``)."""
+    """The measurement update of ``relnav.update``: compiled where ``supported``, else numpy."""
+    if supported(fs):
+        return compiled_update(x, P, step, rows, fs, setup)
     return relnav.update(x, P, step, rows, fs, setup)
+
+
+def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
+    """``(b, m)`` rows that enter the update: the kept features' channels and the pseudo rows."""
+    mask = np.ones((b, m), bool)
+    if keep is not None:
+        mask[:, : keep.shape[-1] * C] = np.repeat(keep, C, axis=-1)
+    return mask
+
+
+def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
+    """``relnav.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
+
+    Raises ``LinAlgError`` when a trial's Cholesky factorization fails (as the numpy
+    path's solvers do), so that the caller retries trial by trial.
+    """
+    from ..core.kernels import update as ku
+    from . import gating
+
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    b, n = x.shape
+    lk = leader_kinematics(setup.orbit, step.t)
+    vis = np.flatnonzero(step.visible).astype(np.int64)
+    nvis, C = vis.size, (9 if setup.disparity else 8)
+    y = np.ascontiguousarray(step.y[rows], dtype=float)
+    m = y.shape[-1]
+    R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(
+        fs, setup, nvis, None if step.alpha_var is None else step.alpha_var[rows]), (b, m)), dtype=float)  # fmt: skip
+    keep = None if step.feature_mask is None else step.feature_mask[rows]
+    rejected = np.zeros(b, int)
+    if fs.gate_probability is not None and nvis:
+        hx, H = measurement_model(setup, step)(x, rows, jac=True)
+        d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
+        keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
+    used = np.full(b, nvis) if keep is None else keep.sum(axis=-1)
+    mask = _row_mask(keep, b, m, C)
+    alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
+    cols = km.measurement_columns(n, vis, C, setup.pseudo)
+    args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
+            float(lk.nu_dot), float(lk.nu_ddot), cols)  # fmt: skip
+    if fs.kind == "ekf":
+        xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
+        its, conv = np.ones(b, int), np.ones(b, bool)
+    else:
+        xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(
+            *args, fs.tolerance, fs.max_iterations, ku.CONTROL[fs.step_control], ku.STOPPING[fs.stopping], 10)
+    if not ok.all():
+        raise np.linalg.LinAlgError(f"Cholesky factorization failed in the compiled update ({int((~ok).sum())} trials)")
+    return relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
+
+
+def supported(fs: FilterSetup) -> bool:
+    """Filters the compiled update covers (others run ``relnav.update``): EKF, IEKF with line search or none."""
+    from ..core.kernels import update as ku
+
+    return fs.kind == "ekf" or (fs.kind == "iekf" and fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)

@@ -4,7 +4,10 @@ The compiled step computes the same equations in another order, so the two paths
 by round-off. Required, at every step of whole case-B trials (both filters as
 configured), from the same posterior: the next posterior states within 1e-8 of the
 posterior standard deviation and covariances within 1e-8 relative (``P_ij`` against
-``sqrt(P_ii P_jj)``).
+``sqrt(P_ii P_jj)``). The one exception is the first update or two of a trial (filter R
+~1e-10 against a prior P ~1, S conditioned ~1e8), where the numpy path itself moves by
+2e-8 (IEKF) to 8e-8 (EKF) of the posterior sigma when its prior state is changed by one
+ulp: there the compiled step must stay within 5x that round-off floor.
 
 Free-running trials cannot meet 1e-8 at the end: the first updates (filter R ~1e-10
 against a prior P ~1) amplify round-off by ~1e8, so the numpy path *itself* moves by
@@ -42,7 +45,7 @@ class _Both:
         from stereopose_mc.filters import compiled, relnav
 
         self.np, self.nb = relnav, compiled
-        self.dx, self.dP = [], []
+        self.dx, self.dP, self.floor = [], [], []
 
     def _record(self, xa, Pa, xb, Pb):
         s = np.sqrt(np.diagonal(Pa, axis1=-2, axis2=-1))
@@ -57,6 +60,8 @@ class _Both:
     def update(self, x, P, step, rows, fs, setup):
         a, b = self.np.update(x, P, step, rows, fs, setup), self.nb.update(x, P, step, rows, fs, setup)
         self._record(a.x, a.P, b.x, b.P)
+        ulp = self.np.update(np.nextafter(x, np.inf), P, step, rows, fs, setup)  # numpy's own round-off floor
+        self.floor.append(np.max(np.abs(a.x - ulp.x) / np.sqrt(np.diagonal(a.P, axis1=-2, axis2=-1))))
         np.testing.assert_array_equal(a.iterations, b.iterations)
         return a
 
@@ -72,7 +77,12 @@ def test_every_step_of_whole_trials_agrees(monkeypatch):
     scn, setup, truth, exact, filters = _prepared(**SHORT)
     run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
     assert len(both.dx) > 100  # predict and update calls of both filters over the steps
-    assert max(both.dx) < 1e-8 and max(both.dP) < 1e-8
+    assert max(both.dP) < 1e-8
+    dx_update = np.array(both.dx[1::2])  # predict, update, predict, ...
+    floor = np.array(both.floor)
+    assert max(both.dx[0::2]) < 1e-10  # predictions (P- in sigma units after an update of cond ~1e8)
+    assert np.all((dx_update < 1e-8) | (dx_update < 5 * floor)), (dx_update, floor)
+    assert np.sum(dx_update >= 1e-8) <= 4  # only the first updates of each filter
 
 
 def _spread(case_overrides, trials):

@@ -1,0 +1,454 @@
+"""Compiled (Numba) EKF and IEKF measurement updates on the row-sparse ``H`` of the model.
+
+Twins of ``core.kalman.ekf_update`` and ``core.kalman.iekf_update`` (whose docstrings give
+the equations), fused with the measurement model of ``core.kernels.model`` and run one
+trial at a time: every product with ``H`` touches only the 16 non-zero columns of a row
+(a feature's rows see ``rho, rho_dot, omega, q`` and its own point; the pseudo rows
+``omega, q, k``), the symmetric positive definite systems (``S`` for the EKF, the whitened
+``A = I + Hw^T Hw`` for the IEKF, ``P-`` itself) are solved by small hand-written Cholesky
+factorizations, and the IEKF's iterations, line search (MAP cost, step halving) and
+unit-free stopping test run per trial with no masking.
+
+A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
+the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
+``h = y`` and ``H = 0`` on that row.
+
+Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
+path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model import NNZ, _measure_one
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
+CONTROL = {"none": 0, "line_search": 1}
+
+
+@njit(**_JIT)
+def _cholesky(A, L):
+    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _chol_solve(L, b):
+    """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
+    n = L.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * b[k]
+        b[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * b[k]
+        b[i] = s / L[i, i]
+
+
+@njit(**_JIT)
+def _chol_solve_rows(L, Bm):
+    """``Bm <- (L L^T)^-1 Bm`` in place for a matrix ``Bm (n, r)`` (column by column, row-major friendly)."""
+    n, r = Bm.shape
+    for i in range(n):
+        for k in range(i):
+            lik = L[i, k]
+            for c in range(r):
+                Bm[i, c] -= lik * Bm[k, c]
+        d = L[i, i]
+        for c in range(r):
+            Bm[i, c] /= d
+    for i in range(n - 1, -1, -1):
+        for k in range(i + 1, n):
+            lki = L[k, i]
+            for c in range(r):
+                Bm[i, c] -= lki * Bm[k, c]
+        d = L[i, i]
+        for c in range(r):
+            Bm[i, c] /= d
+
+
+@njit(**_JIT)
+def _masked(hx, Hval, y, mask):
+    """Rows out of the update: ``h = y``, ``H = 0``."""
+    for r in range(hx.shape[0]):
+        if not mask[r]:
+            hx[r] = y[r]
+            for k in range(NNZ):
+                Hval[r, k] = 0.0
+
+
+@njit(**_JIT)
+def _joseph(P, K, Hval, cols, R, out, IKH, T):
+    """``out = sym((I - K H) P (I - K H)^T + K R K^T)`` with row-sparse ``H``."""
+    n, m = K.shape
+    for i in range(n):
+        for j in range(n):
+            IKH[i, j] = 1.0 if i == j else 0.0
+    for r in range(m):
+        for k in range(NNZ):
+            h = Hval[r, k]
+            if h != 0.0:
+                c = cols[r, k]
+                for i in range(n):
+                    IKH[i, c] -= K[i, r] * h
+    for i in range(n):  # T = IKH P
+        for j in range(n):
+            T[i, j] = 0.0
+        for l in range(n):
+            a = IKH[i, l]
+            if a != 0.0:
+                for j in range(n):
+                    T[i, j] += a * P[l, j]
+    for i in range(n):  # out = T IKH^T + K R K^T
+        for j in range(n):
+            s = 0.0
+            for l in range(n):
+                s += T[i, l] * IKH[j, l]
+            for r in range(m):
+                s += K[i, r] * R[r] * K[j, r]
+            out[i, j] = s
+    for i in range(n):
+        for j in range(i + 1, n):
+            v = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = v
+            out[j, i] = v
+
+
+@njit(**_JIT)
+def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols):
+    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, Joseph ``P+``.
+
+    Returns ``(x+, P+, nu, nis, ok)``; the quaternion of ``x+`` is renormalized.
+    """
+    B, n = x.shape
+    m = y.shape[1]
+    xo = np.empty((B, n))
+    Po = np.empty((B, n, n))
+    nu = np.empty((B, m))
+    nis = np.empty(B)
+    ok = np.ones(B, np.bool_)
+    hx = np.empty(m)
+    Hval = np.zeros((m, NNZ))
+    HP = np.empty((m, n))
+    S = np.empty((m, m))
+    Ls = np.empty((m, m))
+    Z = np.empty((m, n + 1))
+    K = np.empty((n, m))
+    IKH = np.empty((n, n))
+    T = np.empty((n, n))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _masked(hx, Hval, y[b], mask[b])
+        for r in range(m):
+            nu[b, r] = y[b, r] - hx[r]
+            for j in range(n):
+                s = 0.0
+                for k in range(NNZ):
+                    s += Hval[r, k] * P[b, cols[r, k], j]
+                HP[r, j] = s
+        for r in range(m):
+            for q in range(r + 1):
+                s = 0.0
+                for k in range(NNZ):
+                    s += HP[r, cols[q, k]] * Hval[q, k]
+                S[r, q] = s
+            S[r, r] += R[b, r]
+        if not _cholesky(S, Ls):
+            ok[b] = False
+            continue
+        for r in range(m):  # Z = S^-1 [H P | nu]
+            for j in range(n):
+                Z[r, j] = HP[r, j]
+            Z[r, n] = nu[b, r]
+        _chol_solve_rows(Ls, Z)
+        v = 0.0
+        for r in range(m):
+            v += nu[b, r] * Z[r, n]
+            for i in range(n):
+                K[i, r] = Z[r, i]
+        nis[b] = v
+        for i in range(n):
+            s = x[b, i]
+            for r in range(m):
+                s += K[i, r] * nu[b, r]
+            xo[b, i] = s
+        _normalize_q(xo[b])
+        _joseph(P[b], K, Hval, cols, R[b], Po[b], IKH, T)
+    return xo, Po, nu, nis, ok
+
+
+@njit(**_JIT)
+def _normalize_q(x):
+    qn = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
+    for i in range(9, 13):
+        x[i] = x[i] / qn
+
+
+@njit(**_JIT)
+def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
+    """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (lower triangle and full)."""
+    m, n = Hw.shape
+    for r in range(m):
+        rw[r] = (yb[r] - hx[r]) * rws[r]
+        for j in range(n):
+            s = 0.0
+            for k in range(NNZ):
+                s += Hval[r, k] * L[cols[r, k], j]
+            Hw[r, j] = s * rws[r]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 1.0 if i == j else 0.0
+            for r in range(m):
+                s += Hw[r, i] * Hw[r, j]
+            A[i, j] = s
+            A[j, i] = s
+
+
+@njit(**_JIT)
+def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, xt, hx, Hdummy, D, dD):
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` (``h`` only)."""
+    n = xp.shape[0]
+    for i in range(n):
+        s = xp[i]
+        for j in range(i + 1):
+            s += L[i, j] * z[j]
+        xt[i] = s
+    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, D, dD)
+    c = 0.0
+    for i in range(n):
+        c += z[i] * z[i]
+    for r in range(hx.shape[0]):
+        if mask[r]:
+            e = (yb[r] - hx[r]) * rws[r]
+            c += e * e
+    return c
+
+
+@njit(**_JIT)
+def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols,
+                      tol, max_iter, control, stopping, max_halvings):  # fmt: skip
+    """Gauss-Newton IEKF in whitened coordinates ``x = x- + L z`` (``kalman.iekf_update``), per trial.
+
+    ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw.
+    Returns ``(x+, P+, nu, nis, iterations, converged, ok)``; the quaternion of ``x+`` is renormalized.
+    """
+    B, n = x.shape
+    m = y.shape[1]
+    xo = np.empty((B, n))
+    Po = np.empty((B, n, n))
+    nu = np.empty((B, m))
+    nis = np.empty(B)
+    its = np.zeros(B, np.int64)
+    conv = np.zeros(B, np.bool_)
+    ok = np.ones(B, np.bool_)
+    hx = np.empty(m)
+    Hval = np.zeros((m, NNZ))
+    Hfin = np.zeros((m, NNZ))
+    Hdummy = np.zeros((m, NNZ))
+    L = np.empty((n, n))
+    Hw = np.empty((m, n))
+    Hwfin = np.empty((m, n))
+    rw = np.empty(m)
+    v = np.empty(m)
+    A = np.empty((n, n))
+    Afin = np.empty((n, n))
+    LA = np.empty((n, n))
+    rws = np.empty(m)
+    z = np.zeros(n)
+    zn = np.empty(n)
+    zt = np.empty(n)
+    d = np.empty(n)
+    g = np.empty(n)
+    xt = np.empty(n)
+    dx = np.empty(n)
+    Xs = np.empty((n, m))
+    K = np.empty((n, m))
+    IKH = np.empty((n, n))
+    T = np.empty((n, n))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        xp = x[b]
+        yb = y[b]
+        mk = mask[b]
+        for r in range(m):
+            rws[r] = 1.0 / math.sqrt(R[b, r])
+        if not _cholesky(P[b], L):
+            ok[b] = False
+            continue
+        _measure_one(xp, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _masked(hx, Hval, yb, mk)
+        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        for r in range(m):
+            nu[b, r] = yb[r] - hx[r]
+        # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
+        if not _cholesky(A, LA):
+            ok[b] = False
+            continue
+        c0 = 0.0
+        for r in range(m):
+            c0 += rw[r] * rw[r]
+        for i in range(n):
+            s = 0.0
+            for r in range(m):
+                s += Hw[r, i] * rw[r]
+            g[i] = s
+            d[i] = s
+        _chol_solve(LA, d)
+        s = 0.0
+        for i in range(n):
+            s += g[i] * d[i]
+        nis[b] = c0 - s
+        cost = c0
+        for i in range(n):
+            z[i] = 0.0
+        for r in range(m):
+            for k in range(NNZ):
+                Hfin[r, k] = Hval[r, k]
+            for j in range(n):
+                Hwfin[r, j] = Hw[r, j]
+        for i in range(n):
+            for j in range(n):
+                Afin[i, j] = A[i, j]
+        failed = False
+        for it in range(max_iter):
+            # z_GN = A^-1 Hw^T (rw + Hw z)
+            for r in range(m):
+                s = rw[r]
+                for j in range(n):
+                    s += Hw[r, j] * z[j]
+                v[r] = s
+            for i in range(n):
+                s = 0.0
+                for r in range(m):
+                    s += Hw[r, i] * v[r]
+                zn[i] = s
+            if it > 0 and not _cholesky(A, LA):
+                failed = True
+                break
+            _chol_solve(LA, zn)
+            accepted = True
+            c_new = cost
+            if control == 1:  # backtracking line search on the MAP cost
+                for i in range(n):
+                    d[i] = zn[i] - z[i]
+                a = 1.0
+                accepted = False
+                for _h in range(max_halvings + 1):
+                    for i in range(n):
+                        zt[i] = z[i] + a * d[i]
+                    ct = _cost_at(zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
+                                  xt, hx, Hdummy, D, dD)  # fmt: skip
+                    if math.isfinite(ct) and ct <= cost:
+                        accepted = True
+                        c_new = ct
+                        for i in range(n):
+                            zn[i] = zt[i]
+                        break
+                    a *= 0.5
+                if not accepted:
+                    for i in range(n):
+                        zn[i] = z[i]
+            its[b] += 1
+            # size of the increment dz = zn - z
+            size = 0.0
+            if stopping == 0:
+                for i in range(n):
+                    size += (zn[i] - z[i]) ** 2
+                for r in range(m):
+                    s = 0.0
+                    for j in range(n):
+                        s += Hw[r, j] * (zn[j] - z[j])
+                    size += s * s
+                size = math.sqrt(size)
+            elif stopping == 1:
+                for i in range(n):
+                    size += (zn[i] - z[i]) ** 2
+                size = math.sqrt(size)
+            else:
+                for i in range(n):
+                    s = 0.0
+                    for j in range(i + 1):
+                        s += L[i, j] * (zn[j] - z[j])
+                    dx[i] = s
+                if stopping == 2:
+                    for i in range(n):
+                        size = max(size, abs(dx[i]) / math.sqrt(P[b, i, i]))
+                else:
+                    for i in range(n):
+                        size += dx[i] * dx[i]
+                    size = math.sqrt(size)
+            small = accepted and size < tol
+            if accepted:
+                for r in range(m):
+                    for k in range(NNZ):
+                        Hfin[r, k] = Hval[r, k]
+                    for j in range(n):
+                        Hwfin[r, j] = Hw[r, j]
+                for i in range(n):
+                    for j in range(n):
+                        Afin[i, j] = A[i, j]
+            for i in range(n):
+                z[i] = zn[i]
+            cost = c_new
+            if small:
+                conv[b] = True
+            if small or (control == 1 and not accepted) or it == max_iter - 1:
+                break
+            for i in range(n):
+                s = xp[i]
+                for j in range(i + 1):
+                    s += L[i, j] * z[j]
+                xt[i] = s
+            _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+            _masked(hx, Hval, yb, mk)
+            _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        if failed or not _cholesky(Afin, LA):
+            ok[b] = False
+            continue
+        for i in range(n):
+            s = xp[i]
+            for j in range(i + 1):
+                s += L[i, j] * z[j]
+            xo[b, i] = s
+        _normalize_q(xo[b])
+        # K = L A^-1 Hw^T R^-1/2
+        for i in range(n):
+            for r in range(m):
+                Xs[i, r] = Hwfin[r, i]
+        _chol_solve_rows(LA, Xs)
+        for i in range(n):
+            for r in range(m):
+                s = 0.0
+                for j in range(i + 1):
+                    s += L[i, j] * Xs[j, r]
+                K[i, r] = s * rws[r]
+        _joseph(P[b], K, Hfin, cols, R[b], Po[b], IKH, T)
+    return xo, Po, nu, nis, its, conv, ok
