@@ -234,21 +234,35 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
 @njit(**_JIT)
 def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, xt, hx, Hdummy, D, dD):
     """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` (``h`` only)."""
-    n = xp.shape[0]
-    for i in range(n):
-        s = xp[i]
-        for j in range(i + 1):
-            s += L[i, j] * z[j]
-        xt[i] = s
+    _to_x(xp, L, z, xt)
     _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, D, dD)
     c = 0.0
-    for i in range(n):
+    for i in range(z.shape[0]):
         c += z[i] * z[i]
     for r in range(hx.shape[0]):
         if mask[r]:
             e = (yb[r] - hx[r]) * rws[r]
             c += e * e
     return c
+
+
+@njit(**_JIT)
+def _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin):
+    """Copy the iterate's ``H``, ``Hw``, ``A`` (those of the last accepted step give ``P+``)."""
+    Hfin[:, :] = Hval
+    Hwfin[:, :] = Hw
+    Afin[:, :] = A
+
+
+@njit(**_JIT)
+def _to_x(xp, L, z, out):
+    """``out = x- + L z`` (``L`` lower triangular)."""
+    n = xp.shape[0]
+    for i in range(n):
+        s = xp[i]
+        for j in range(i + 1):
+            s += L[i, j] * z[j]
+        out[i] = s
 
 
 @njit(**_JIT)
@@ -329,14 +343,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         cost = c0
         for i in range(n):
             z[i] = 0.0
-        for r in range(m):
-            for k in range(NNZ):
-                Hfin[r, k] = Hval[r, k]
-            for j in range(n):
-                Hwfin[r, j] = Hw[r, j]
-        for i in range(n):
-            for j in range(n):
-                Afin[i, j] = A[i, j]
+        _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin)
         failed = False
         for it in range(max_iter):
             # z_GN = A^-1 Hw^T (rw + Hw z)
@@ -407,14 +414,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                     size = math.sqrt(size)
             small = accepted and size < tol
             if accepted:
-                for r in range(m):
-                    for k in range(NNZ):
-                        Hfin[r, k] = Hval[r, k]
-                    for j in range(n):
-                        Hwfin[r, j] = Hw[r, j]
-                for i in range(n):
-                    for j in range(n):
-                        Afin[i, j] = A[i, j]
+                _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin)
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
@@ -422,22 +422,14 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 conv[b] = True
             if small or (control == 1 and not accepted) or it == max_iter - 1:
                 break
-            for i in range(n):
-                s = xp[i]
-                for j in range(i + 1):
-                    s += L[i, j] * z[j]
-                xt[i] = s
+            _to_x(xp, L, z, xt)
             _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
             _masked(hx, Hval, yb, mk)
             _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
         if failed or not _cholesky(Afin, LA):
             ok[b] = False
             continue
-        for i in range(n):
-            s = xp[i]
-            for j in range(i + 1):
-                s += L[i, j] * z[j]
-            xo[b, i] = s
+        _to_x(xp, L, z, xo[b])
         _normalize_q(xo[b])
         # K = L A^-1 Hw^T R^-1/2
         for i in range(n):
