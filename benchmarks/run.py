@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "e2e", "steps")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

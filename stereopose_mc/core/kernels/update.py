@@ -34,22 +34,32 @@ CONTROL = {"none": 0, "line_search": 1}
 
 @njit(**_JIT)
 def _cholesky(A, L):
-    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD."""
+    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
+
+    Right-looking on ``U = L^T`` held by rows, so that the trailing update is a contiguous
+    axpy per row (vectorizable without reassociating sums).
+    """
     n = A.shape[0]
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
+    U = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            U[i, j] = A[j, i]
+    for k in range(n):
+        d = U[k, k]
+        if not d > 0.0:
             return False
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-        for i in range(j):
+        d = math.sqrt(d)
+        for j in range(k, n):
+            U[k, j] /= d
+        for i in range(k + 1, n):
+            a = U[k, i]
+            if a != 0.0:
+                for j in range(i, n):
+                    U[i, j] -= a * U[k, j]
+    for i in range(n):
+        for j in range(i + 1):
+            L[i, j] = U[j, i]
+        for j in range(i + 1, n):
             L[i, j] = 0.0
     return True
 
@@ -103,40 +113,48 @@ def _masked(hx, Hval, y, mask):
 
 
 @njit(**_JIT)
-def _joseph(P, K, Hval, cols, R, out, IKH, T):
-    """``out = sym((I - K H) P (I - K H)^T + K R K^T)`` with row-sparse ``H``."""
-    n, m = K.shape
+def _joseph(P, Z, Hval, cols, R, out, G, T):
+    """``out = (I - K H) P (I - K H)^T + K R K^T`` with ``K^T = Z[:, :n]`` and row-sparse ``H``.
+
+    Every inner loop is an axpy over a contiguous row (vectorizable without reassociation):
+    ``G = (I - K H)^T``, ``T = (I - K H) P``, ``out = T G + sum_r K[:, r] R_r K^T[r]``
+    (lower triangle, then mirrored: the result is exactly symmetric).
+    """
+    m = Z.shape[0]
+    n = P.shape[0]
     for i in range(n):
         for j in range(n):
-            IKH[i, j] = 1.0 if i == j else 0.0
+            G[i, j] = 0.0
+        G[i, i] = 1.0
     for r in range(m):
         for k in range(NNZ):
             h = Hval[r, k]
             if h != 0.0:
                 c = cols[r, k]
-                for i in range(n):
-                    IKH[i, c] -= K[i, r] * h
-    for i in range(n):  # T = IKH P
+                for j in range(n):
+                    G[c, j] -= h * Z[r, j]
+    for i in range(n):  # T[i] = sum_l IKH[i, l] P[l] = sum_l G[l, i] P[l]
         for j in range(n):
             T[i, j] = 0.0
         for l in range(n):
-            a = IKH[i, l]
+            a = G[l, i]
             if a != 0.0:
                 for j in range(n):
                     T[i, j] += a * P[l, j]
-    for i in range(n):  # out = T IKH^T + K R K^T
-        for j in range(n):
-            s = 0.0
-            for l in range(n):
-                s += T[i, l] * IKH[j, l]
-            for r in range(m):
-                s += K[i, r] * R[r] * K[j, r]
-            out[i, j] = s
     for i in range(n):
-        for j in range(i + 1, n):
-            v = 0.5 * (out[i, j] + out[j, i])
-            out[i, j] = v
-            out[j, i] = v
+        for j in range(i + 1):
+            out[i, j] = 0.0
+        for l in range(n):
+            a = T[i, l]
+            for j in range(i + 1):
+                out[i, j] += a * G[l, j]
+        for r in range(m):
+            a = Z[r, i] * R[r]
+            for j in range(i + 1):
+                out[i, j] += a * Z[r, j]
+    for i in range(n):
+        for j in range(i):
+            out[j, i] = out[i, j]
 
 
 @njit(**_JIT)
@@ -158,8 +176,7 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     S = np.empty((m, m))
     Ls = np.empty((m, m))
     Z = np.empty((m, n + 1))
-    K = np.empty((n, m))
-    IKH = np.empty((n, n))
+    G = np.empty((n, n))
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
@@ -169,10 +186,13 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
         for r in range(m):
             nu[b, r] = y[b, r] - hx[r]
             for j in range(n):
-                s = 0.0
-                for k in range(NNZ):
-                    s += Hval[r, k] * P[b, cols[r, k], j]
-                HP[r, j] = s
+                HP[r, j] = 0.0
+            for k in range(NNZ):
+                h = Hval[r, k]
+                if h != 0.0:
+                    c = cols[r, k]
+                    for j in range(n):
+                        HP[r, j] += h * P[b, c, j]
         for r in range(m):
             for q in range(r + 1):
                 s = 0.0
@@ -189,18 +209,16 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
             Z[r, n] = nu[b, r]
         _chol_solve_rows(Ls, Z)
         v = 0.0
-        for r in range(m):
-            v += nu[b, r] * Z[r, n]
-            for i in range(n):
-                K[i, r] = Z[r, i]
-        nis[b] = v
         for i in range(n):
-            s = x[b, i]
-            for r in range(m):
-                s += K[i, r] * nu[b, r]
-            xo[b, i] = s
+            xo[b, i] = x[b, i]
+        for r in range(m):  # x+ = x + K nu, K^T = Z[:, :n]
+            v += nu[b, r] * Z[r, n]
+            a = nu[b, r]
+            for i in range(n):
+                xo[b, i] += Z[r, i] * a
+        nis[b] = v
         _normalize_q(xo[b])
-        _joseph(P[b], K, Hval, cols, R[b], Po[b], IKH, T)
+        _joseph(P[b], Z, Hval, cols, R[b], Po[b], G, T)
     return xo, Po, nu, nis, ok
 
 
@@ -213,22 +231,34 @@ def _normalize_q(x):
 
 @njit(**_JIT)
 def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
-    """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (lower triangle and full)."""
+    """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
+
+    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular) and
+    ``A += Hw[r]^T Hw[r]`` on the lower triangle, contiguous inner loops.
+    """
     m, n = Hw.shape
+    for i in range(n):
+        for j in range(i + 1):
+            A[i, j] = 0.0
+        A[i, i] = 1.0
     for r in range(m):
         rw[r] = (yb[r] - hx[r]) * rws[r]
         for j in range(n):
-            s = 0.0
-            for k in range(NNZ):
-                s += Hval[r, k] * L[cols[r, k], j]
-            Hw[r, j] = s * rws[r]
+            Hw[r, j] = 0.0
+        for k in range(NNZ):
+            h = Hval[r, k] * rws[r]
+            if h != 0.0:
+                c = cols[r, k]
+                for j in range(c + 1):
+                    Hw[r, j] += h * L[c, j]
+        for i in range(n):
+            a = Hw[r, i]
+            if a != 0.0:
+                for j in range(i + 1):
+                    A[i, j] += a * Hw[r, j]
     for i in range(n):
-        for j in range(i + 1):
-            s = 1.0 if i == j else 0.0
-            for r in range(m):
-                s += Hw[r, i] * Hw[r, j]
-            A[i, j] = s
-            A[j, i] = s
+        for j in range(i):
+            A[j, i] = A[i, j]
 
 
 @njit(**_JIT)
@@ -247,11 +277,49 @@ def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, a
 
 
 @njit(**_JIT)
-def _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin):
-    """Copy the iterate's ``H``, ``Hw``, ``A`` (those of the last accepted step give ``P+``)."""
-    Hfin[:, :] = Hval
-    Hwfin[:, :] = Hw
+def _keep_linearization(A, Afin):
+    """Copy the iterate's ``A = I + Hw^T Hw`` (that of the last accepted step gives ``P+``)."""
     Afin[:, :] = A
+
+
+@njit(**_JIT)
+def _mul_t(M, v, out):
+    """``out = M^T v`` (``M (m, n)``), row by row."""
+    m, n = M.shape
+    for i in range(n):
+        out[i] = 0.0
+    for r in range(m):
+        a = v[r]
+        for i in range(n):
+            out[i] += M[r, i] * a
+
+
+@njit(**_JIT)
+def _posterior_covariance(L, LA, out, X):
+    """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``."""
+    n = L.shape[0]
+    for i in range(n):
+        for j in range(n):
+            X[i, j] = L[j, i]
+        for k in range(i):
+            a = LA[i, k]
+            for j in range(n):
+                X[i, j] -= a * X[k, j]
+        d = LA[i, i]
+        for j in range(n):
+            X[i, j] /= d
+    for i in range(n):
+        for j in range(i + 1):
+            out[i, j] = 0.0
+    for k in range(n):
+        for i in range(n):
+            a = X[k, i]
+            if a != 0.0:
+                for j in range(i + 1):
+                    out[i, j] += a * X[k, j]
+    for i in range(n):
+        for j in range(i):
+            out[j, i] = out[i, j]
 
 
 @njit(**_JIT)
@@ -284,11 +352,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     ok = np.ones(B, np.bool_)
     hx = np.empty(m)
     Hval = np.zeros((m, NNZ))
-    Hfin = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
     L = np.empty((n, n))
     Hw = np.empty((m, n))
-    Hwfin = np.empty((m, n))
     rw = np.empty(m)
     v = np.empty(m)
     A = np.empty((n, n))
@@ -302,9 +368,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     g = np.empty(n)
     xt = np.empty(n)
     dx = np.empty(n)
-    Xs = np.empty((n, m))
-    K = np.empty((n, m))
-    IKH = np.empty((n, n))
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
@@ -329,12 +392,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         c0 = 0.0
         for r in range(m):
             c0 += rw[r] * rw[r]
+        _mul_t(Hw, rw, g)
         for i in range(n):
-            s = 0.0
-            for r in range(m):
-                s += Hw[r, i] * rw[r]
-            g[i] = s
-            d[i] = s
+            d[i] = g[i]
         _chol_solve(LA, d)
         s = 0.0
         for i in range(n):
@@ -343,7 +403,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         cost = c0
         for i in range(n):
             z[i] = 0.0
-        _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin)
+        _keep_linearization(A, Afin)
         failed = False
         for it in range(max_iter):
             # z_GN = A^-1 Hw^T (rw + Hw z)
@@ -352,11 +412,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 for j in range(n):
                     s += Hw[r, j] * z[j]
                 v[r] = s
-            for i in range(n):
-                s = 0.0
-                for r in range(m):
-                    s += Hw[r, i] * v[r]
-                zn[i] = s
+            _mul_t(Hw, v, zn)
             if it > 0 and not _cholesky(A, LA):
                 failed = True
                 break
@@ -414,7 +470,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                     size = math.sqrt(size)
             small = accepted and size < tol
             if accepted:
-                _keep_linearization(Hval, Hw, A, Hfin, Hwfin, Afin)
+                _keep_linearization(A, Afin)
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
@@ -431,16 +487,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             continue
         _to_x(xp, L, z, xo[b])
         _normalize_q(xo[b])
-        # K = L A^-1 Hw^T R^-1/2
-        for i in range(n):
-            for r in range(m):
-                Xs[i, r] = Hwfin[r, i]
-        _chol_solve_rows(LA, Xs)
-        for i in range(n):
-            for r in range(m):
-                s = 0.0
-                for j in range(i + 1):
-                    s += L[i, j] * Xs[j, r]
-                K[i, r] = s * rws[r]
-        _joseph(P[b], K, Hfin, cols, R[b], Po[b], IKH, T)
+        # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
+        # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
+        _posterior_covariance(L, LA, Po[b], T)
     return xo, Po, nu, nis, its, conv, ok
