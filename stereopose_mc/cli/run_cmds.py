@@ -18,7 +18,8 @@ def run(
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
-    chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
+    chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help="trials stepped together per chunk "
+                                             "(default 50; with --kernels compiled: trials / jobs, at most 250)"),
     backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with --kernels compiled, "
                                           "else loky processes) | loky | threading | dask"),
     kernels: str = typer.Option("numpy", "--kernels", help="numpy (the reference) | compiled (Numba; same results "

@@ -99,8 +99,9 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
 def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """``relnav.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
 
-    Raises ``LinAlgError`` when a trial's Cholesky factorization fails (as the numpy
-    path's solvers do), so that the caller retries trial by trial.
+    A trial whose Cholesky factorization fails (``S`` or ``P-`` not numerically positive
+    definite, as in a filter that is losing track) is updated by ``relnav.update``, so it
+    meets numpy's solvers and their errors exactly as with ``--kernels numpy``.
     """
     from ..core.kernels import update as ku
     from . import gating
@@ -133,9 +134,22 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     else:
         xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(
             *args, fs.tolerance, fs.max_iterations, ku.CONTROL[fs.step_control], ku.STOPPING[fs.stopping], 10)
-    if not ok.all():
-        raise np.linalg.LinAlgError(f"Cholesky factorization failed in the compiled update ({int((~ok).sum())} trials)")
-    return relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
+    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
+    if not ok.all():  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
+        u = _patch(u, ~ok, relnav.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
+    return u
+
+
+def _patch(u, bad: Array, v):
+    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields)."""
+    import dataclasses
+
+    out = {}
+    for f in dataclasses.fields(u):
+        a = np.array(getattr(u, f.name), copy=True)
+        a[bad] = getattr(v, f.name)
+        out[f.name] = a
+    return type(u)(**out)
 
 
 def supported(fs: FilterSetup) -> bool:

@@ -150,7 +150,7 @@ class RunOptions:
     trials: int | None = None
     seed: int | None = None
     jobs: int = 1
-    chunk_size: int = 50
+    chunk_size: int | None = 50  # None: auto_chunk_size
     backend: str = "loky"  # "auto": threads for --kernels compiled (nogil kernels), else loky
     kernels: str = "numpy"  # numpy | compiled (mc.trial.step_functions)
     scheduler: str | None = None
@@ -231,6 +231,22 @@ def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: 
     if driver_pid is not None:
         _die_with(driver_pid)
     return compute_chunk(scenario_json, trials, timeseries, kernels)
+
+
+AUTO_CHUNK_MAX = 250  # compiled kernels: trials per chunk at most (memory ~ chunk x steps x n^2)
+
+
+def auto_chunk_size(opts: RunOptions, n_trials: int) -> int:
+    """The chunk size when ``--chunk-size`` is not given.
+
+    numpy kernels: 50 (as before). Compiled kernels: the trials split evenly over the
+    jobs, at most ``AUTO_CHUNK_MAX``: the per-step Python work and the per-chunk tables
+    and files (which hold the GIL) are then paid as few times as possible. Results do not
+    depend on the chunk size.
+    """
+    if opts.kernels != "compiled":
+        return 50
+    return int(max(1, min(AUTO_CHUNK_MAX, -(-n_trials // max(1, opts.jobs)))))
 
 
 def local_backend(opts: RunOptions, n_chunks: int) -> str:
@@ -421,7 +437,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         scn = scn.model_copy(update={"trials": opts.trials})
     if opts.timeseries not in TIMESERIES_MODES:
         raise RunError(f"--timeseries must be one of {', '.join(TIMESERIES_MODES)}")
-    if opts.chunk_size < 1 or opts.jobs < 1:
+    if (opts.chunk_size is not None and opts.chunk_size < 1) or opts.jobs < 1:
         raise RunError("--jobs and --chunk-size must be at least 1")
     if opts.kernels not in ("numpy", "compiled"):
         raise RunError(f"--kernels must be numpy or compiled (got {opts.kernels!r})")
@@ -466,7 +482,7 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
              + [f"(rejected files moved to {dest})"])  # fmt: skip
     done = np.asarray(v.done_trials(), dtype=np.int64)
     todo = np.setdiff1d(np.arange(scn.trials), done)
-    chunks = plan_chunks(todo, opts.chunk_size)
+    chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size))
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
     n_done, n_div = int(done.size), {f: v.diverged().get(f, 0) for f in spec.filters}
