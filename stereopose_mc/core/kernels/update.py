@@ -6,7 +6,9 @@ trial at a time: every product with ``H`` touches only the 16 non-zero columns o
 (a feature's rows see ``rho, rho_dot, omega, q`` and its own point; the pseudo rows
 ``omega, q, k``), the symmetric positive definite systems (``S`` for the EKF, the whitened
 ``A = I + Hw^T Hw`` for the IEKF, ``P-`` itself) are solved by small hand-written Cholesky
-factorizations, and the IEKF's iterations, line search (MAP cost, step halving) and
+factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the optimal gain
+(``P - W^T W`` for the EKF, ``L A^-1 L^T`` for the IEKF: the same matrix to round-off, exactly
+symmetric and positive semi-definite by construction), and the IEKF's iterations, line search (MAP cost, step halving) and
 unit-free stopping test run per trial with no masking.
 
 A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
@@ -81,28 +83,6 @@ def _chol_solve(L, b):
 
 
 @njit(**_JIT)
-def _chol_solve_rows(L, Bm):
-    """``Bm <- (L L^T)^-1 Bm`` in place for a matrix ``Bm (n, r)`` (column by column, row-major friendly)."""
-    n, r = Bm.shape
-    for i in range(n):
-        for k in range(i):
-            lik = L[i, k]
-            for c in range(r):
-                Bm[i, c] -= lik * Bm[k, c]
-        d = L[i, i]
-        for c in range(r):
-            Bm[i, c] /= d
-    for i in range(n - 1, -1, -1):
-        for k in range(i + 1, n):
-            lki = L[k, i]
-            for c in range(r):
-                Bm[i, c] -= lki * Bm[k, c]
-        d = L[i, i]
-        for c in range(r):
-            Bm[i, c] /= d
-
-
-@njit(**_JIT)
 def _masked(hx, Hval, y, mask):
     """Rows out of the update: ``h = y``, ``H = 0``."""
     for r in range(hx.shape[0]):
@@ -113,53 +93,12 @@ def _masked(hx, Hval, y, mask):
 
 
 @njit(**_JIT)
-def _joseph(P, Z, Hval, cols, R, out, G, T):
-    """``out = (I - K H) P (I - K H)^T + K R K^T`` with ``K^T = Z[:, :n]`` and row-sparse ``H``.
-
-    Every inner loop is an axpy over a contiguous row (vectorizable without reassociation):
-    ``G = (I - K H)^T``, ``T = (I - K H) P``, ``out = T G + sum_r K[:, r] R_r K^T[r]``
-    (lower triangle, then mirrored: the result is exactly symmetric).
-    """
-    m = Z.shape[0]
-    n = P.shape[0]
-    for i in range(n):
-        for j in range(n):
-            G[i, j] = 0.0
-        G[i, i] = 1.0
-    for r in range(m):
-        for k in range(NNZ):
-            h = Hval[r, k]
-            if h != 0.0:
-                c = cols[r, k]
-                for j in range(n):
-                    G[c, j] -= h * Z[r, j]
-    for i in range(n):  # T[i] = sum_l IKH[i, l] P[l] = sum_l G[l, i] P[l]
-        for j in range(n):
-            T[i, j] = 0.0
-        for l in range(n):
-            a = G[l, i]
-            if a != 0.0:
-                for j in range(n):
-                    T[i, j] += a * P[l, j]
-    for i in range(n):
-        for j in range(i + 1):
-            out[i, j] = 0.0
-        for l in range(n):
-            a = T[i, l]
-            for j in range(i + 1):
-                out[i, j] += a * G[l, j]
-        for r in range(m):
-            a = Z[r, i] * R[r]
-            for j in range(i + 1):
-                out[i, j] += a * Z[r, j]
-    for i in range(n):
-        for j in range(i):
-            out[j, i] = out[i, j]
-
-
-@njit(**_JIT)
 def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols):
-    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, Joseph ``P+``.
+    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, ``P+``.
+
+    ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its optimal gain, as
+    ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to round-off, exactly
+    symmetric, at a third of the cost.
 
     Returns ``(x+, P+, nu, nis, ok)``; the quaternion of ``x+`` is renormalized.
     """
@@ -176,8 +115,6 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     S = np.empty((m, m))
     Ls = np.empty((m, m))
     Z = np.empty((m, n + 1))
-    G = np.empty((n, n))
-    T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
@@ -203,22 +140,41 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
         if not _cholesky(S, Ls):
             ok[b] = False
             continue
-        for r in range(m):  # Z = S^-1 [H P | nu]
+        # W = Ls^-1 [H P | nu] (forward substitution, row axpys): with K = P H^T S^-1,
+        # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
+        # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
+        for r in range(m):
             for j in range(n):
                 Z[r, j] = HP[r, j]
             Z[r, n] = nu[b, r]
-        _chol_solve_rows(Ls, Z)
+            for k in range(r):
+                a = Ls[r, k]
+                for j in range(n + 1):
+                    Z[r, j] -= a * Z[k, j]
+            d = Ls[r, r]
+            for j in range(n + 1):
+                Z[r, j] /= d
         v = 0.0
         for i in range(n):
             xo[b, i] = x[b, i]
-        for r in range(m):  # x+ = x + K nu, K^T = Z[:, :n]
-            v += nu[b, r] * Z[r, n]
-            a = nu[b, r]
+        Pb = Po[b]
+        for i in range(n):
+            for j in range(i + 1):
+                Pb[i, j] = P[b, i, j]
+        for r in range(m):
+            a = Z[r, n]
+            v += a * a
             for i in range(n):
                 xo[b, i] += Z[r, i] * a
+                c = Z[r, i]
+                if c != 0.0:
+                    for j in range(i + 1):
+                        Pb[i, j] -= c * Z[r, j]
+        for i in range(n):
+            for j in range(i):
+                Pb[j, i] = Pb[i, j]
         nis[b] = v
         _normalize_q(xo[b])
-        _joseph(P[b], Z, Hval, cols, R[b], Po[b], G, T)
     return xo, Po, nu, nis, ok
 
 
