@@ -7,9 +7,9 @@ trial at a time: every product with ``H`` touches only the 16 non-zero columns o
 ``omega, q, k``), the symmetric positive definite systems (``S`` for the EKF, the whitened
 ``A = I + Hw^T Hw`` for the IEKF, ``P-`` itself) are solved by small hand-written Cholesky
 factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the optimal gain
-(``P - W^T W`` for the EKF, ``L A^-1 L^T`` for the IEKF: the same matrix to round-off, exactly
-symmetric and positive semi-definite by construction), and the IEKF's iterations, line search (MAP cost, step halving) and
-unit-free stopping test run per trial with no masking.
+(``P - W^T W`` for the EKF, ``L A^-1 L^T`` for the IEKF, positive semi-definite by
+construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
+line search (MAP cost, step halving) and unit-free stopping test run per trial.
 
 A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
