@@ -31,10 +31,15 @@ def _q_batch(Q: Array, B: int, n: int) -> Array:
     return np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
 
 
-def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup) -> Array:
-    """``Phi[:, 0:13, c]`` (``B, 13, 15``) at the posterior ``x`` (the rest of ``Phi`` is the identity)."""
-    lk = leader_kinematics(setup.orbit, t)
-    Fr = km.F_reduced_batch(x, float(lk.r), float(lk.nu_dot), float(lk.nu_ddot), setup.orbit.mu)
+def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None) -> Array:
+    """``Phi[:, 0:13, c]`` (``B, 13, 15``) at the posterior ``x`` (the rest of ``Phi`` is the identity).
+
+    ``lk``: the leader's ``(r, nu_dot, nu_ddot)`` at ``t`` when the caller has them.
+    """
+    if lk is None:
+        k = leader_kinematics(setup.orbit, t)
+        lk = (float(k.r), float(k.nu_dot), float(k.nu_ddot))
+    Fr = km.F_reduced_batch(x, lk[0], lk[1], lk[2], setup.orbit.mu)
     if fs.transition == "expm":
         from scipy.linalg import expm
 
@@ -49,11 +54,12 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     B, n = x.shape
-    T = transition_block(x, t, fs, setup)
     h = setup.dt / fs.substeps
+    # the leader once for all the RK4 stage times; the first is t, where F is evaluated
     lk = leader_kinematics(setup.orbit, t + 0.5 * h * np.arange(2 * fs.substeps + 1))
-    x_pred = km.propagate_batch(x, np.ascontiguousarray(lk.r, dtype=float), np.ascontiguousarray(lk.nu_dot, dtype=float),
-                                np.ascontiguousarray(lk.nu_ddot, dtype=float), h, setup.orbit.mu, fs.substeps, True)
+    r, nd, ndd = (np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
+    T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
+    x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
 
