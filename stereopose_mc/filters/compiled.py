@@ -25,6 +25,7 @@ from ..core.orbit import leader_kinematics
 from . import relnav
 
 Array = NDArray[np.float64]
+COMPILED_KINDS = ("ekf", "iekf")  # filter types whose predict/update have compiled kernels
 
 
 def _q_batch(Q: Array, B: int, n: int) -> Array:
@@ -51,6 +52,8 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
     """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
+    if fs.kind not in COMPILED_KINDS:  # other filter types keep their own (numpy) step
+        return relnav.predict(x, P, t, fs, setup)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     B, n = x.shape
