@@ -16,6 +16,8 @@ work is done:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,6 +30,14 @@ Array = NDArray[np.float64]
 COMPILED_KINDS = ("ekf", "iekf")  # filter types whose predict/update have compiled kernels
 
 
+@functools.lru_cache(maxsize=4096)
+def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Array, Array]:
+    """``(r_L, nu', nu'')`` at ``t + i h / 2``, ``i < stages``: the same for every trial, chunk and filter of a
+    step, so computed once (``leader_kinematics`` is a Kepler solve in numpy on a few scalars)."""
+    lk = leader_kinematics(orbit, t + 0.5 * h * np.arange(stages))
+    return tuple(np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
+
+
 def _q_batch(Q: Array, B: int, n: int) -> Array:
     return np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
 
@@ -38,8 +48,7 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
     ``lk``: the leader's ``(r, nu_dot, nu_ddot)`` at ``t`` when the caller has them.
     """
     if lk is None:
-        k = leader_kinematics(setup.orbit, t)
-        lk = (float(k.r), float(k.nu_dot), float(k.nu_ddot))
+        lk = tuple(float(v[0]) for v in _leader(setup.orbit, float(t)))
     Fr = km.F_reduced_batch(x, lk[0], lk[1], lk[2], setup.orbit.mu)
     if fs.transition == "expm":
         from scipy.linalg import expm
@@ -59,8 +68,7 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     B, n = x.shape
     h = setup.dt / fs.substeps
     # the leader once for all the RK4 stage times; the first is t, where F is evaluated
-    lk = leader_kinematics(setup.orbit, t + 0.5 * h * np.arange(2 * fs.substeps + 1))
-    r, nd, ndd = (np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
+    r, nd, ndd = _leader(setup.orbit, float(t), h, 2 * fs.substeps + 1)
     T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
     x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
@@ -68,9 +76,8 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
 
 def measurement_model(setup: Setup, step: relnav.StepMeasurement):
     """``relnav.measurement_model`` on the compiled ``h``/``H`` (dense ``H`` for ``core.kalman``)."""
-    lk = leader_kinematics(setup.orbit, step.t)
+    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
     vis = np.flatnonzero(step.visible).astype(np.int64)
-    nd, ndd = float(lk.nu_dot), float(lk.nu_ddot)
     C = 9 if setup.disparity else 8
     alpha_all = np.ascontiguousarray(step.alpha, dtype=float)
     cols_cache: dict[int, Array] = {}
@@ -118,7 +125,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     b, n = x.shape
-    lk = leader_kinematics(setup.orbit, step.t)
+    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
     vis = np.flatnonzero(step.visible).astype(np.int64)
     nvis, C = vis.size, (9 if setup.disparity else 8)
     y = np.ascontiguousarray(step.y[rows], dtype=float)
@@ -136,7 +143,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
     cols = km.measurement_columns(n, vis, C, setup.pseudo)
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
-            float(lk.nu_dot), float(lk.nu_ddot), cols)  # fmt: skip
+            nd, ndd, cols)  # fmt: skip
     if fs.kind == "ekf":
         xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
         its, conv = np.ones(b, int), np.ones(b, bool)
