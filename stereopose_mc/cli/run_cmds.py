@@ -22,8 +22,8 @@ def run(
                                              "(default 50; with --kernels compiled: trials / jobs, at most 250)"),
     backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with --kernels compiled, "
                                           "else loky processes) | loky | threading | dask"),
-    kernels: str = typer.Option("numpy", "--kernels", help="numpy (the reference) | compiled (Numba; same results "
-                                "to round-off, see docs/performance.md)"),
+    kernels: Optional[str] = typer.Option(None, "--kernels", help="numpy (default; the reference) | compiled (Numba, "
+                                          "threads; same results to round-off: docs/performance.md); on --resume, the run's"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
                                             "(default with dask: a LocalCluster); see docs/distributed.md"),
     timeseries: Optional[str] = typer.Option(None, "--timeseries", help="none | summary (first 100 trials) | full "
@@ -44,7 +44,7 @@ def run(
     backend = backend or ("dask" if scheduler is not None else "auto")
     if backend not in ("auto", "loky", "threading", "dask"):
         fail(f"--backend must be auto, loky, threading or dask (got {backend!r})")
-    if kernels not in ("numpy", "compiled"):
+    if kernels not in (None, "numpy", "compiled"):
         fail(f"--kernels must be numpy or compiled (got {kernels!r})")
     if resume is not None:
         if scenario is not None:

@@ -20,6 +20,7 @@ and the manifest) for that reason.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -152,7 +153,7 @@ class RunOptions:
     jobs: int = 1
     chunk_size: int | None = 50  # None: auto_chunk_size
     backend: str = "loky"  # "auto": threads for --kernels compiled (nogil kernels), else loky
-    kernels: str = "numpy"  # numpy | compiled (mc.trial.step_functions)
+    kernels: str | None = "numpy"  # numpy | compiled (mc.trial.step_functions); None: numpy, or a resumed run's
     scheduler: str | None = None
     timeseries: str = "full"
     overwrite: bool = False
@@ -403,6 +404,17 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     return manifest, runlock.create_locked(out, opts.overwrite, populate, "spmc run")
 
 
+def _resume_kernels(opts: RunOptions, manifest: dict) -> RunOptions:
+    """A resumed run keeps the kernels it was started with unless ``--kernels`` says otherwise (then a note)."""
+    rec = (manifest.get("backend") or {}).get("kernels") or "numpy"
+    if opts.kernels is None:
+        return dataclasses.replace(opts, kernels=rec)
+    if opts.kernels != rec:
+        _say(opts, [f"this run's chunks so far used --kernels {rec}; the rest use --kernels {opts.kernels}: the two "
+                    "agree to round-off, not bit for bit (docs/performance.md)"])  # fmt: skip
+    return opts
+
+
 def _resume_checks(scn: Scenario, out: Path, opts: RunOptions, manifest: dict, shash: str) -> Scenario:
     """The recorded run's scenario, with a larger ``--trials`` applied; conflicts are errors."""
     recorded = int(manifest["trials"])
@@ -439,8 +451,10 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         raise RunError(f"--timeseries must be one of {', '.join(TIMESERIES_MODES)}")
     if (opts.chunk_size is not None and opts.chunk_size < 1) or opts.jobs < 1:
         raise RunError("--jobs and --chunk-size must be at least 1")
-    if opts.kernels not in ("numpy", "compiled"):
+    if opts.kernels not in (None, "numpy", "compiled"):
         raise RunError(f"--kernels must be numpy or compiled (got {opts.kernels!r})")
+    if opts.kernels is None and not opts.resume:
+        opts = dataclasses.replace(opts, kernels="numpy")
     too_big = memory_problem(opts.trials or scn.trials, len(scn.filters))
     if too_big:
         raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
@@ -458,6 +472,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
     try:
         if opts.resume:
             manifest = _read_manifest(out)  # as the last writer left it, now that we hold the lock
+            opts = _resume_kernels(opts, manifest)
             recorded = int(manifest["trials"])
             scn = _resume_checks(scn, out, opts, manifest, shash)
             manifest["code_version"] = code

@@ -61,3 +61,13 @@ def test_bad_kernels_is_one_line_exit_2(scenario, tmp_path):
     r = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "x"), "--kernels", "fortran", "--quiet"])
     assert r.exit_code == 2 and "--kernels" in r.output
     assert not (tmp_path / "x").exists()
+
+
+def test_resume_keeps_the_runs_kernels(scenario, compiled_ref, tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--trials", 3, "--kernels", "compiled")
+    run_ok("run", "--resume", out, "--trials", 8)  # no --kernels: the run's own
+    assert json.loads((out / "manifest.json").read_text())["backend"]["kernels"] == "compiled"
+    same_bytes(compiled_ref, out)
