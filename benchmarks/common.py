@@ -17,7 +17,7 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE_B = ROOT / "configs" / "caseB.yaml"
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "steps")
 COLUMNS = ("section", "filter", "measure", "value", "unit", "target", "status", "note")
 
 
@@ -84,6 +84,9 @@ class BenchConfig:
     scaling_batch: int = 100
     scaling_steps: int = 5
     sphere_radius_m: float = 1.5
+    feature_points: tuple[int, ...] = (5, 10, 20, 40)  # `steps` section: update cost vs N (issue 14)
+    cold_cache: bool = True  # `e2e`: empty Numba's cache before the cold compiled run
+    memory_kernels: str = "compiled"  # `memory`: spmc run --kernels (threads with compiled)
     # peak memory (spmc run in a subprocess)
     memory_trials: int = 10000
     memory_jobs: int = 2
@@ -103,6 +106,7 @@ class BenchConfig:
     def quick(cls, **kw: Any) -> "BenchConfig":
         base = dict(
             mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
+            feature_points=(5, 10, 20),
             scaling_batch=20, scaling_steps=2, memory_trials=1000, baseline_trials=20,
         )  # fmt: skip
         base.update(kw)

@@ -1,8 +1,9 @@
 """``make bench``: the benchmark suite of stereopose_mc (see docs/performance.md).
 
-    .venv/bin/python benchmarks/run.py              # full (what `make bench` runs; ~30 min on 2 cores)
+    .venv/bin/python benchmarks/run.py              # full (what `make bench` runs; ~20-30 min on 2 cores)
     .venv/bin/python benchmarks/run.py --quick      # reduced sizes (100-trial campaigns, 1,000-trial memory run)
     .venv/bin/python benchmarks/run.py --only latency --only scaling
+    .venv/bin/python benchmarks/run.py --only e2e --only steps   # numpy vs compiled kernels (issue 14)
 
 Prints the machine, then one table (section, filter, measure, value, unit, target,
 status, note); writes it to ``runs/bench/results-<mode>[-<sections>].csv`` and ``.json``
@@ -19,7 +20,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "steps")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

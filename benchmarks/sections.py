@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import kernels_bench
 from .common import (
     BenchConfig,
     blas_limit,
@@ -59,10 +60,11 @@ def subprocess_env(cfg: BenchConfig) -> dict[str, str]:
     return env
 
 
-def spmc_run_args(scenario: Path, out: Path, trials: int, jobs: int, timeseries: str) -> list[str]:
+def spmc_run_args(scenario: Path, out: Path, trials: int, jobs: int, timeseries: str,
+                  kernels: str = "numpy") -> list[str]:  # fmt: skip
     return spmc_command() + [
         "run", str(scenario), "--trials", str(trials), "--jobs", str(jobs), "--out", str(out), "--overwrite",
-        "--quiet", "--no-report", "--timeseries", timeseries,
+        "--quiet", "--no-report", "--timeseries", timeseries, "--kernels", kernels,
     ]  # fmt: skip
 
 
@@ -241,6 +243,31 @@ def _single_trial_path(prep: Prepared, fs, trial: int):
     return posts, steps, iters, ok
 
 
+def step_latencies(sf, prep: Prepared, fs, posts, steps, k0: int, k1: int, reps: int) -> tuple[list, list]:
+    """Wall times of ``sf.predict`` and ``sf.update`` (``B = 1``) from the recorded posteriors, steps ``k0..k1``."""
+    one = np.arange(1)
+    s = prep.setup
+
+    def step_once(k: int) -> tuple[float, float]:
+        x, P = posts[k - 1]
+        t0 = time.perf_counter()
+        xa, Pa = sf.predict(x, P, prep.truth.t[k - 1], fs, s)
+        t1 = time.perf_counter()
+        sf.update(xa, Pa, steps[k], one, fs, s)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1
+
+    for k in range(k0, min(k0 + 5, k1) + 1):  # warm-up
+        step_once(k)
+    pred, upd = [], []
+    for _ in range(reps):
+        for k in range(k0, k1 + 1):
+            a, b = step_once(k)
+            pred.append(a)
+            upd.append(b)
+    return pred, upd
+
+
 def latency(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     """Wall time of one ``relnav.predict`` + ``relnav.update`` with ``B = 1``, after convergence."""
     with blas_limit(cfg.inproc_threads):
@@ -269,25 +296,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
                             note=f"every one of trials 0-{cfg.latency_candidates - 1} diverged"))  # fmt: skip
             continue
         log(f"latency: {kind}, trial {trial}, steps {k0}-{k1}, {cfg.latency_reps} repeats")
-        one = np.arange(1)
-
-        def step_once(k: int) -> tuple[float, float]:
-            x, P = posts[k - 1]
-            t0 = time.perf_counter()
-            xa, Pa = relnav.predict(x, P, prep.truth.t[k - 1], fs, s)
-            t1 = time.perf_counter()
-            relnav.update(xa, Pa, steps[k], one, fs, s)
-            t2 = time.perf_counter()
-            return t1 - t0, t2 - t1
-
-        for k in range(k0, min(k0 + 5, k1) + 1):  # warm-up
-            step_once(k)
-        pred, upd = [], []
-        for _ in range(cfg.latency_reps):
-            for k in range(k0, k1 + 1):
-                a, b = step_once(k)
-                pred.append(a)
-                upd.append(b)
+        pred, upd = step_latencies(relnav, prep, fs, posts, steps, k0, k1, cfg.latency_reps)
         tot = np.add(pred, upd)
         med, p99 = 1e3 * float(np.median(tot)), 1e3 * percentile(tot, 99)
         it = float(np.mean(iters[k0 - 1 : k1]))
@@ -369,8 +378,8 @@ def memory(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     scn = write_yaml(tmp / "memory.yaml", d)
     out = tmp / "memory-run"
     T, J = cfg.memory_trials, cfg.memory_jobs
-    cmd = spmc_run_args(scn, out, T, J, "summary")
-    log(f"memory: {T} trials, --jobs {J}, --timeseries summary, filters {label}")
+    cmd = spmc_run_args(scn, out, T, J, "summary", cfg.memory_kernels)
+    log(f"memory: {T} trials, --jobs {J}, --timeseries summary, --kernels {cfg.memory_kernels}, filters {label}")
     pm = run_and_measure(cmd, cfg.memory_interval_s, env=subprocess_env(cfg))
     _check_proc(cmd, pm.returncode, pm.stderr)
     ndiv, ntr, _ = _run_counts(out, _steps_of(d))
@@ -381,7 +390,7 @@ def memory(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
           f"up to {pm.max_processes} processes)"
     star = f"*measured at {T:,} trials, not projected; " if reduced else ""
     return [
-        Row("memory", label, f"peak RSS, {T:,} trials, --jobs {J}", pm.tree_rss_mib, "MiB",
+        Row("memory", label, f"peak RSS, {T:,} trials, --jobs {J}, {cfg.memory_kernels}", pm.tree_rss_mib, "MiB",
             f"<= {TARGET_MEMORY_MIB:g} MiB ({cfg.memory_target_trials:,} trials)",
             judge(pm.tree_rss_mib, TARGET_MEMORY_MIB, "max", reduced),
             star + how + "; shared pages counted per process"),
@@ -521,4 +530,5 @@ SECTION_FUNCS: dict[str, Callable[[BenchConfig, Path, dict], list[Row]]] = {
     "memory": memory,
     "baseline": baseline,
     "dispersed": dispersed_truth,
+    **kernels_bench.SECTION_FUNCS,  # issue 14: numpy vs compiled kernels
 }

@@ -35,7 +35,7 @@ def cfg(tmp_path_factory):
         mode="smoke", out=tmp_path_factory.mktemp("bench"), time_override=TINY_TIME, repeats=1,
         campaign_trials=2, campaign_jobs=(1, 2), chunk_trials={1: 2, 2: 2}, latency_steps=(2, 3), latency_reps=1,
         latency_candidates=3, scaling_points=(5, 6), scaling_batch=2, scaling_steps=2, memory_trials=2, memory_jobs=1,
-        memory_interval_s=0.05, baseline_trials=2,
+        memory_interval_s=0.05, baseline_trials=2, feature_points=(5, 6), cold_cache=False,
     )  # fmt: skip
 
 
@@ -103,7 +103,7 @@ def test_chunk_latency_scaling_rows(results):
 def test_memory_rows(results):
     rows, _ = results
     rs = {r.measure: r for r in rows["memory"]}
-    rss = rs["peak RSS, 2 trials, --jobs 1"]
+    rss = rs["peak RSS, 2 trials, --jobs 1, compiled"]
     assert rss.filter == "iekf+ekf"
     # a Python process with numpy, pandas and pyarrow loaded holds well over 50 MiB and the
     # tree sum is at least the largest single process seen while sampling
@@ -229,3 +229,22 @@ def test_outputs_hold_the_rows(results, tmp_path):
     assert float(back[0]["value"]) == flat[0].value
     payload = json.loads(j.read_text())
     assert payload["mode"] == "smoke" and len(payload["rows"]) == len(flat)
+
+
+def test_kernel_sections_compare_numpy_and_compiled(results):
+    rows, _ = results
+    e2e = {r.measure: r for r in rows["e2e"]}
+    for k in ("numpy", "compiled"):
+        for temp in ("cold", "warm"):
+            assert f"wall, 2 trials, --jobs 2, {k}, {temp}" in e2e
+        assert f"2-trial run, warm, {k}: median" in e2e
+    assert e2e["wall, 2 trials, --jobs 2, compiled, warm"].target == "<= 5 s (1,000 trials)"
+    assert e2e["ratio numpy / compiled (warm)"].value == pytest.approx(
+        e2e["wall, 2 trials, --jobs 2, numpy, warm"].value / e2e["wall, 2 trials, --jobs 2, compiled, warm"].value)
+    st = {(r.filter, r.measure): r for r in rows["steps"]}
+    for kind in ("iekf", "ekf"):
+        assert st[(kind, "latency B=1, step predict+update, compiled: median")].target.startswith("<= ")
+        for B in (1, 2):
+            assert (kind, f"throughput B={B}: ratio compiled / numpy") in st
+        assert (kind, "update growth exponent p ~ N^p (N=5..6), compiled") in st
+    assert st[("ekf", "ours / FilterPy per computed step, compiled")].target == ">= 50x"

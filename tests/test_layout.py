@@ -1,6 +1,6 @@
 """Layout rule: ``stereopose_mc/core`` is pure numerics.
 
-Every module under ``core/`` may import only numpy, scipy, the standard library,
+Every module under ``core/`` may import only numpy, scipy, numba, the standard library,
 ``__future__`` and (relatively) other modules of ``core``. Checked on the source with
 ``ast``, so imports inside functions and ``if TYPE_CHECKING`` blocks count too.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 CORE = Path(__file__).resolve().parents[1] / "stereopose_mc" / "core"
-ALLOWED_TOP = {"numpy", "scipy", "__future__"}
+ALLOWED_TOP = {"numpy", "scipy", "numba", "__future__"}  # numba: core/kernels (DEVGUIDE: numpy/scipy/numba only)
 
 
 def _core_modules() -> set[str]:

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import typer
 
-from ..config import ScenarioError, load_scenario
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help="stereopose_mc: Monte Carlo runs of stereo-vision relative pose, motion and inertia estimation.")
 
@@ -23,6 +22,8 @@ def fail(lines: list[str] | str, code: int = 2) -> None:
 
 
 def load_or_exit(path: Path, overrides: dict | None = None):
+    from ..config import ScenarioError, load_scenario  # here, not at import: `spmc --help` stays fast
+
     try:
         return load_scenario(path, overrides)
     except ScenarioError as exc:

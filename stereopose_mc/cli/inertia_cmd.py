@@ -12,7 +12,6 @@ from typing import Optional
 
 import typer
 
-from ..studies.jsonfmt import fmt_vec
 from .app import app, emit, fail, load_or_exit
 
 INERTIA_HELP = (
@@ -88,4 +87,6 @@ def inertia(
         r["written_config"] = str(write_config)
     emit(r, inertia_lines, as_json)
     if not as_json and "written_config" in r:
+        from ..studies.jsonfmt import fmt_vec
+
         typer.echo(f"wrote {write_config}: target.inertia_kgm2 = {fmt_vec(r['principal_moments'], '.9g')}")

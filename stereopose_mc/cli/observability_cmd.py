@@ -12,7 +12,6 @@ from typing import Optional
 
 import typer
 
-from ..studies.jsonfmt import fmt_vec
 from .app import app, echo_json, emit, fail, load_or_exit
 
 DEFAULT_WEAK_COUNT = 5
@@ -102,6 +101,8 @@ def observability(
     if as_json:
         echo_json(r)
         return
+    from ..studies.jsonfmt import fmt_vec
+
     typer.echo("Hermann-Krener rank test (thesis ch. 4): x = [w_x, w_y, w_z, I_x, I_y, I_z], y = w, torque-free")
     typer.echo(
         f"w = {fmt_vec(omega_degps, '.6g')} deg/s, I = {fmt_vec(inertia, '.6g')} kg m^2, "

@@ -8,7 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..outputs.rundir import RunDirError
 from .app import app, fail, load_or_exit
 
 
@@ -19,8 +18,12 @@ def run(
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
-    chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
-    backend: Optional[str] = typer.Option(None, "--backend", help="loky (default) | threading | dask"),
+    chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help="trials stepped together per chunk "
+                                             "(default 50; with --kernels compiled: trials / jobs, at most 250)"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with --kernels compiled, "
+                                          "else loky processes) | loky | threading | dask"),
+    kernels: Optional[str] = typer.Option(None, "--kernels", help="numpy (default; the reference) | compiled (Numba, "
+                                          "threads; same results to round-off: docs/performance.md); on --resume, the run's"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
                                             "(default with dask: a LocalCluster); see docs/distributed.md"),
     timeseries: Optional[str] = typer.Option(None, "--timeseries", help="none | summary (first 100 trials) | full "
@@ -33,13 +36,16 @@ def run(
     """Run a Monte Carlo campaign: every filter of the scenario on every trial."""
     from ..mc import engine
     from ..outputs import tables
+    from ..outputs.rundir import RunDirError
     from .progress import figure_progress, progress_reporter
 
     if scheduler is not None and backend not in (None, "dask"):
         fail(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
-    backend = backend or ("dask" if scheduler is not None else "loky")
-    if backend not in ("loky", "threading", "dask"):
-        fail(f"--backend must be loky, threading or dask (got {backend!r})")
+    backend = backend or ("dask" if scheduler is not None else "auto")
+    if backend not in ("auto", "loky", "threading", "dask"):
+        fail(f"--backend must be auto, loky, threading or dask (got {backend!r})")
+    if kernels not in (None, "numpy", "compiled"):
+        fail(f"--kernels must be numpy or compiled (got {kernels!r})")
     if resume is not None:
         if scenario is not None:
             fail("give either a SCENARIO or --resume DIR, not both")
@@ -56,7 +62,7 @@ def run(
             fail("missing SCENARIO (or --resume DIR)")
         scn = load_or_exit(scenario)
         out = out or Path("runs") / scn.name
-    opts = engine.RunOptions(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend,
+    opts = engine.RunOptions(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend, kernels=kernels,
                              scheduler=scheduler, timeseries=timeseries or "full", overwrite=overwrite,
                              resume=resume is not None, command=list(sys.argv),
                              say=lambda line: typer.echo(f"note: {line}", err=True))  # fmt: skip

@@ -8,8 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..config import ScenarioError, load_scenario
-from ..outputs.rundir import RunDirError
 from .app import app, fail, load_or_exit
 
 
@@ -18,6 +16,7 @@ def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
     (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
     from ..studies import sweep as sw
+    from ..config import ScenarioError, load_scenario
 
     problems: list[str] = []
     for f in files:
@@ -49,6 +48,7 @@ def simulate(
     trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
+    from ..outputs.rundir import RunDirError
     from ..outputs.simulation import simulate as run_simulate
 
     scn = load_or_exit(scenario)

@@ -26,13 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 Array = NDArray[np.float64]
 
 
 def threshold(probability: float, dof: int) -> float:
     """The gate ``chi2_dof^-1(probability)`` on the squared Mahalanobis distance."""
+    from scipy.stats import chi2  # here: scipy.stats costs ~0.2 s of start-up, and only gated runs need it
+
     return float(chi2.ppf(probability, dof))
 
 

@@ -63,7 +63,8 @@ def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
         dst.gated[rows] = src.gated
 
 
-def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -> tuple[ChunkResult, sd.TrialDispersions]:
+def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
+              kernels: str = "numpy") -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
     """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order)."""
     t0 = time.perf_counter()
     trials = np.asarray(trials, dtype=np.int64)
@@ -109,7 +110,8 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds) -
                 x0_m, P0_m = measurement_start(fsetup, filters[0], y_m[:, 0], exact.visible[m[0]][0], x0_m)
             for fs in filters:
                 t1 = time.perf_counter()
-                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m, P0_m)
+                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m, P0_m,
+                               kernels)  # fmt: skip
                 _put(runs[fs.label], r, rows[m])
                 runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
                                             else np.zeros(B))  # fmt: skip

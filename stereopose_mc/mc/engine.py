@@ -20,6 +20,7 @@ and the manifest) for that reason.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -106,7 +107,10 @@ class ChunkOutput:
     diverged_by: dict[str, int] = field(default_factory=dict)  # per filter
 
 
-def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> ChunkOutput:
+_PREPARE_LOCK = threading.Lock()  # threads of one process share prepare()'s cache: compute it once
+
+
+def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kernels: str = "numpy") -> ChunkOutput:
     """Run one chunk of trials (any process): pure function of its arguments.
 
     BLAS runs single-threaded here: a multithreaded BLAS splits a product or a solve
@@ -114,11 +118,12 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str) -> Ch
     Parallelism comes from the chunks instead.
     """
     with threadpool_limits(limits=1):
-        scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
+        with _PREPARE_LOCK:
+            scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
         if dispersed.has_dispersions(scn):
-            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds)
+            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels)
         else:
-            res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds), None
+            res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels), None
     tdf = tables.trials_frame(res, truth.t, setup.window_start, scn.seed)
     if disp is not None:
         tdf = dispersed.with_columns(tdf, disp)
@@ -155,8 +160,9 @@ class RunOptions:
     trials: int | None = None
     seed: int | None = None
     jobs: int = 1
-    chunk_size: int = 50
-    backend: str = "loky"
+    chunk_size: int | None = 50  # None: auto_chunk_size
+    backend: str = "loky"  # "auto": threads for --kernels compiled (nogil kernels), else loky
+    kernels: str | None = "numpy"  # numpy | compiled (mc.trial.step_functions); None: numpy, or a resumed run's
     scheduler: str | None = None
     timeseries: str = "full"
     overwrite: bool = False
@@ -229,11 +235,44 @@ def _die_with(driver_pid: int) -> None:
     threading.Thread(target=watch, name="spmc-parent-watch", daemon=True).start()
 
 
-def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str):
+def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str,
+                            kernels: str = "numpy"):  # fmt: skip
     """:func:`compute_chunk` in a local worker process that dies with the driver ``driver_pid``."""
     if driver_pid is not None:
         _die_with(driver_pid)
-    return compute_chunk(scenario_json, trials, timeseries)
+    return compute_chunk(scenario_json, trials, timeseries, kernels)
+
+
+AUTO_CHUNK_MAX = 250  # compiled kernels: trials per chunk at most (memory ~ chunk x steps x n^2)
+
+
+def auto_chunk_size(opts: RunOptions, n_trials: int) -> int:
+    """The chunk size when ``--chunk-size`` is not given.
+
+    numpy kernels: 50 (as before). Compiled kernels: the trials split evenly over the
+    jobs, at most ``AUTO_CHUNK_MAX``: the per-step Python work and the per-chunk tables
+    and files (which hold the GIL) are then paid as few times as possible. Results do not
+    depend on the chunk size.
+    """
+    if opts.kernels != "compiled":
+        return 50
+    return int(max(1, min(AUTO_CHUNK_MAX, -(-n_trials // max(1, opts.jobs)))))
+
+
+def local_backend(opts: RunOptions, n_chunks: int) -> str:
+    """Where the chunks run: ``inline`` (this thread), ``threading``, ``loky`` or ``dask``.
+
+    One job or one chunk runs inline (no pool to start); ``auto`` picks threads for the
+    compiled kernels (they release the GIL, and a thread imports nothing) and loky
+    processes for the numpy kernels (numpy's small-array calls hold the GIL).
+    """
+    if opts.backend == "dask":
+        return "dask"
+    if opts.jobs == 1 or n_chunks <= 1:
+        return "inline"
+    if opts.backend == "auto":
+        return "threading" if opts.kernels == "compiled" else "loky"
+    return opts.backend
 
 
 def connect_dask(address: str | None, jobs: int, info: dict | None = None):
@@ -264,15 +303,22 @@ DASK_CONNECT_TIMEOUT_S = 10
 def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
              info: dict | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
     """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest)."""
-    if opts.jobs == 1 and opts.backend != "dask":
+    where = local_backend(opts, len(chunks))
+    if info is not None:
+        info["ran_as"] = where
+    if where == "inline":
         for c in chunks:
-            yield compute_chunk(scenario_json, c, opts.timeseries)
+            yield compute_chunk(scenario_json, c, opts.timeseries, opts.kernels)
         return
     from joblib import Parallel, delayed, parallel_config
 
-    driver = None if opts.scheduler else os.getpid()  # remote workers outlive us by design
-    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries) for c in chunks)
-    if opts.backend == "dask":
+    driver = None if opts.scheduler or where == "threading" else os.getpid()  # remote workers outlive us by design
+    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries, opts.kernels) for c in chunks)
+    if where == "threading":  # one BLAS limit for all threads (per-thread limits would undo each other)
+        with threadpool_limits(limits=1), parallel_config(backend="threading", n_jobs=opts.jobs):
+            yield from Parallel(return_as="generator_unordered")(calls)
+        return
+    if where == "dask":
         from dask.distributed import KilledWorker
 
         client, cluster = connect_dask(opts.scheduler, opts.jobs, info)
@@ -287,7 +333,7 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
             if cluster is not None:
                 cluster.close()
         return
-    with parallel_config(backend=opts.backend, n_jobs=opts.jobs):
+    with parallel_config(backend=where, n_jobs=opts.jobs):
         yield from Parallel(return_as="generator_unordered")(calls)
 
 
@@ -368,6 +414,17 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     return manifest, runlock.create_locked(out, opts.overwrite, populate, "spmc run")
 
 
+def _resume_kernels(opts: RunOptions, manifest: dict) -> RunOptions:
+    """A resumed run keeps the kernels it was started with unless ``--kernels`` says otherwise (then a note)."""
+    rec = (manifest.get("backend") or {}).get("kernels") or "numpy"
+    if opts.kernels is None:
+        return dataclasses.replace(opts, kernels=rec)
+    if opts.kernels != rec:
+        _say(opts, [f"this run's chunks so far used --kernels {rec}; the rest use --kernels {opts.kernels}: the two "
+                    "agree to round-off, not bit for bit (docs/performance.md)"])  # fmt: skip
+    return opts
+
+
 def _resume_checks(scn: Scenario, out: Path, opts: RunOptions, manifest: dict, shash: str) -> Scenario:
     """The recorded run's scenario, with a larger ``--trials`` applied; conflicts are errors."""
     recorded = int(manifest["trials"])
@@ -402,8 +459,12 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         scn = scn.model_copy(update={"trials": opts.trials})
     if opts.timeseries not in TIMESERIES_MODES:
         raise RunError(f"--timeseries must be one of {', '.join(TIMESERIES_MODES)}")
-    if opts.chunk_size < 1 or opts.jobs < 1:
+    if (opts.chunk_size is not None and opts.chunk_size < 1) or opts.jobs < 1:
         raise RunError("--jobs and --chunk-size must be at least 1")
+    if opts.kernels not in (None, "numpy", "compiled"):
+        raise RunError(f"--kernels must be numpy or compiled (got {opts.kernels!r})")
+    if opts.kernels is None and not opts.resume:
+        opts = dataclasses.replace(opts, kernels="numpy")
     too_big = memory_problem(opts.trials or scn.trials, len(scn.filters))
     if too_big:
         raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
@@ -421,6 +482,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
     try:
         if opts.resume:
             manifest = _read_manifest(out)  # as the last writer left it, now that we hold the lock
+            opts = _resume_kernels(opts, manifest)
             recorded = int(manifest["trials"])
             scn = _resume_checks(scn, out, opts, manifest, shash)
             manifest["code_version"] = code
@@ -445,13 +507,14 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
              + [f"(rejected files moved to {dest})"])  # fmt: skip
     done = np.asarray(v.done_trials(), dtype=np.int64)
     todo = np.setdiff1d(np.arange(scn.trials), done)
-    chunks = plan_chunks(todo, opts.chunk_size)
+    chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size))
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
     n_done, n_div = int(done.size), {f: v.diverged().get(f, 0) for f in spec.filters}
     if progress:
         progress(n_done, scn.trials, dict(n_div))
-    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None}
+    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
+                           "kernels": opts.kernels}  # fmt: skip
     for co in _iterate(scenario_json, chunks, opts, manifest["backend"]):
         _write_chunk(chunk_dir, co, meta, spec)
         n_done += co.trials.size

@@ -149,13 +149,16 @@ def run_filter(
     x0_hat: Array, setup: Setup, truth: Truth, y_feat: Array, alpha: Array, visible: Array, fs: FilterSetup, bounds: Bounds,
     kept: Array | None = None,
     P0: Array | None = None,
+    kernels: str = "numpy",
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
     ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
-    holds the initial estimate's errors.
+    holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
+    ``compiled`` (``filters.compiled``, the same step on the Numba kernels).
     """
+    stepper = step_functions(kernels)
     B, n = x0_hat.shape
     K = setup.steps
     err = np.full((B, K + 1, 6), np.nan)
@@ -191,7 +194,7 @@ def run_filter(
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
-            xa, Pa = estimators.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = stepper.predict(x[active], P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -206,7 +209,7 @@ def run_filter(
             feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
-            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k)
+            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, stepper.update)
             e = errors(u.x, true_state(truth.x, k, active))
             bad = _check(u.x, u.P, e, bounds)
         bad = [f or b for f, b in zip(failed, bad)]
@@ -273,40 +276,44 @@ def _omega_var(P: Array) -> Array:
     return np.diagonal(P[:, st.OMEGA, st.OMEGA], axis1=-2, axis2=-1).copy()
 
 
-def _robust_update(xa, Pa, step, rows, fs, setup):
-    """The batched update; if linear algebra fails for the batch, trial by trial.
+KERNELS = ("numpy", "compiled")
+
+
+def step_functions(kernels: str):
+    """The module whose ``predict`` and ``update`` run the filter step: ``estimators`` (numpy) or ``compiled``."""
+    if kernels == "numpy":
+        return estimators
+    if kernels == "compiled":
+        from ..filters import compiled
+
+        return compiled
+    raise ValueError(f"unknown kernels {kernels!r} (expected one of {', '.join(KERNELS)})")
+
+
+def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
+    """The batched update; if linear algebra fails for the batch, on halves of it down to single trials.
 
     Returns the update and, per trial, the failure reason ('' when it went through).
-    A trial whose own update fails gets NaN state and covariance.
+    A trial whose own update fails gets NaN state and covariance. Trials are independent
+    in every kernel, so a trial's result does not depend on the sub-batch it ran in;
+    bisection costs ``O(log B)`` extra calls per failing trial instead of ``B``.
     """
     try:
-        return estimators.update(xa, Pa, step, rows, fs, setup), [""] * rows.size
-    except np.linalg.LinAlgError:
-        pass
-    parts, reasons = [], []
-    for j in range(rows.size):
-        try:
-            parts.append(estimators.update(xa[j : j + 1], Pa[j : j + 1], step, rows[j : j + 1], fs, setup))
-            reasons.append("")
-        except np.linalg.LinAlgError as exc:
-            parts.append(None)
-            reasons.append(f"linear algebra failure in the update: {exc}")
-    ok = next(p for p in parts if p is not None) if any(p is not None for p in parts) else None
-    m = ok.nu.shape[-1] if ok is not None else step.y.shape[-1]
-    n = xa.shape[-1]
-    ne = Pa.shape[-1]
-
-    def cat(attr, shape, fill):
-        return np.concatenate([getattr(p, attr) if p is not None else np.full((1,) + shape, fill) for p in parts])
-
-    if ok is None or not hasattr(ok, "features_used"):  # MEKF/UKF updates without the gate's counts
-        u = kf.Update(cat("x", (n,), np.nan), cat("P", (ne, ne), np.nan), cat("nu", (m,), np.nan),
-                      cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False))  # fmt: skip
-        return u, reasons
-    u = relnav.GatedUpdate(cat("x", (n,), np.nan), cat("P", (ne, ne), np.nan), cat("nu", (m,), np.nan),
-                           cat("nis", (), np.nan), cat("iterations", (), 0), cat("converged", (), False),
-                           cat("rejected", (), 0), cat("features_used", (), 0))  # fmt: skip
-    return u, reasons
+        return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+    except np.linalg.LinAlgError as exc:
+        if rows.size == 1:
+            n, ne, m = xa.shape[-1], Pa.shape[-1], step.y.shape[-1]
+            nan = relnav.GatedUpdate(np.full((1, n), np.nan), np.full((1, ne, ne), np.nan), np.full((1, m), np.nan),
+                                     np.full(1, np.nan), np.zeros(1, int), np.zeros(1, bool), np.zeros(1, int),
+                                     np.zeros(1, int))  # fmt: skip
+            return nan, [f"linear algebra failure in the update: {exc}"]
+    h = rows.size // 2
+    (u1, r1), (u2, r2) = (_robust_update(xa[sl], Pa[sl], step, rows[sl], fs, setup, update)
+                          for sl in (slice(0, h), slice(h, None)))  # fmt: skip
+    # MEKF/UKF updates carry no gate counts: concatenate the fields both halves have
+    cls = relnav.GatedUpdate if isinstance(u1, relnav.GatedUpdate) and isinstance(u2, relnav.GatedUpdate) else kf.Update
+    return cls(*(np.concatenate([getattr(u1, f.name), getattr(u2, f.name)])
+                 for f in dataclasses.fields(cls))), r1 + r2  # fmt: skip
 
 
 def nees_of(x: Array, P: Array, x_true: Array) -> dict[str, Array]:
@@ -336,7 +343,7 @@ class ChunkResult:
 
 
 def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
-              filters: list[FilterSetup], bounds: Bounds) -> ChunkResult:
+              filters: list[FilterSetup], bounds: Bounds, kernels: str = "numpy") -> ChunkResult:
     """Draw the chunk's trials and run every filter on the same draws."""
     t0 = time.perf_counter()
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
@@ -352,7 +359,7 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     for fs in filters:
         t1 = time.perf_counter()
         r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
-                       None if faults is None else faults.kept, P0)  # fmt: skip
+                       None if faults is None else faults.kept, P0, kernels)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

@@ -12,11 +12,11 @@ import sys
 import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
+if TYPE_CHECKING:  # pandas and pyarrow are imported where used, so that `spmc --help` starts fast
+    import pandas as pd
+    import pyarrow as pa
 
 from .. import __version__
 from ..config.schema import SCHEMA_VERSION
@@ -96,6 +96,9 @@ def write_json(path: Path, obj: Any) -> None:
 
 def with_units(table: pa.Table, units: dict[str, str] | None) -> pa.Table:
     """``table`` with each field's unit (``units[name]``) in the field's metadata, key ``unit``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     if not units:
         return table
     fields = [f.with_metadata({b"unit": units[f.name].encode()}) if f.name in units else f for f in table.schema]
@@ -104,6 +107,9 @@ def with_units(table: pa.Table, units: dict[str, str] | None) -> pa.Table:
 
 def field_units(path: Path) -> dict[str, str | None]:
     """The ``unit`` of each field of a Parquet file (None where it has none)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     return {f.name: (f.metadata or {}).get(b"unit", b"").decode() or None for f in pq.read_schema(path)}
 
 
@@ -115,6 +121,9 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None 
     Written without pandas' index and with a fixed writer so that the same table gives
     the same bytes. ``units``: column -> unit, stored as the field metadata ``unit``.
     """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     table = pa.Table.from_pandas(df, preserve_index=False)
     meta = dict(table.schema.metadata or {})
     meta.pop(b"pandas", None)
@@ -141,6 +150,9 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
     (the last one fewer) whatever the sources' sizes, so the output's bytes do not
     depend on how the rows were split into sources. Returns the number of rows.
     """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
@@ -179,6 +191,9 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
 
 
 def read_parquet_metadata(path: Path) -> dict[str, str]:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     md = pq.read_schema(path).metadata or {}
     return {k.decode(): v.decode() for k, v in md.items()}
 

@@ -38,4 +38,5 @@ def test_killed_worker_still_gives_identical_results(quick_scenario, tmp_path):
     for n in ("trials.parquet", "timeseries.parquet", "percentiles.csv"):
         assert (out / n).read_bytes() == (reference / n).read_bytes(), n
     man = json.loads((out / "manifest.json").read_text())
-    assert man["backend"] == {"backend": "dask", "jobs": 1, "address": cluster.scheduler_address, "workers": 2}
+    assert man["backend"] == {"backend": "dask", "jobs": 1, "address": cluster.scheduler_address, "workers": 2,
+                              "kernels": "numpy", "ran_as": "dask"}

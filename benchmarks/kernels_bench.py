@@ -1,0 +1,270 @@
+"""Sections of issue 14: numpy vs compiled kernels side by side, with ratios.
+
+- ``e2e``: the case-B campaign as configured (both filters), ``--jobs 2``, end to end in a
+  subprocess, per kernels: cold (compiled: Numba's on-disk cache emptied first, i.e. the
+  first run after install) and warm; start-up (``spmc --help``; a 2-trial run, warm).
+- ``steps``: per-step latency at B = 1 (predict + update, after convergence);
+  throughput (trial-steps/s of ``run_filter`` in-process) at B = 1, 10, 100, 1000; the
+  update's cost against the number of feature points (5, 10, 20, 40, fitted exponent);
+  the FilterPy EKF loop per computed step against our compiled EKF.
+
+Every time is a wall-clock median; ``ratio`` rows are numpy / compiled.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .common import BenchConfig, Row, blas_limit, fit_exponent, judge, log, prepare, scenario_dict, single_filter, \
+    sphere_points, timed, write_yaml  # fmt: skip
+
+KERNELS = ("numpy", "compiled")
+TARGET_E2E_S = 5.0  # 1,000 trials, both filters, --jobs 2, warm
+TARGET_STARTUP_S = 1.0  # spmc --help; a 2-trial run, warm
+TARGET_STEP_MS = {"iekf": 0.1, "ekf": 0.05}  # single-trial step
+TARGET_FILTERPY_X = 50.0  # per computed step
+TARGET_UPDATE_EXPONENT = 1.5
+
+
+def _spmc(args: list[str], env=None) -> tuple[float, subprocess.CompletedProcess]:
+    from .sections import spmc_command
+
+    t0 = time.perf_counter()
+    r = subprocess.run(spmc_command() + args, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise RuntimeError(f"spmc {' '.join(args)} failed ({r.returncode}): {r.stderr.strip()[-2000:]}")
+    return wall, r
+
+
+def numba_cache_dirs() -> list[Path]:
+    """Where Numba keeps the compiled kernels of ``core/kernels`` (``cache=True``: ``__pycache__`` beside them)."""
+    import stereopose_mc.core.kernels as k
+
+    return [Path(k.__file__).parent / "__pycache__"]
+
+
+def clear_numba_cache() -> int:
+    n = 0
+    for d in numba_cache_dirs():
+        for p in list(d.glob("*.nbi")) + list(d.glob("*.nbc")):
+            p.unlink()
+            n += 1
+    return n
+
+
+def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
+    """End-to-end campaign (both filters), cold and warm, and start-up, per kernels."""
+    from .sections import _engine_wall, _run_counts, _steps_of, subprocess_env
+
+    rows: list[Row] = []
+    d = scenario_dict(cfg)
+    scn = write_yaml(tmp / "e2e.yaml", d)
+    T, J = cfg.campaign_trials, 2
+    env = subprocess_env(cfg)
+    reduced = T != cfg.target_trials
+    warm: dict[str, float] = {}
+    for kernels in KERNELS:
+        for temp in ("cold", "warm"):
+            if temp == "cold" and kernels == "compiled" and cfg.cold_cache:
+                log(f"e2e: cleared {clear_numba_cache()} Numba cache files")
+            out = tmp / f"e2e-{kernels}-{temp}"
+            log(f"e2e: {kernels}, {temp}, {T} trials, --jobs {J}")
+            wall, _ = _spmc(["run", str(scn), "--trials", str(T), "--jobs", str(J), "--out", str(out), "--overwrite",
+                             "--quiet", "--no-report", "--kernels", kernels], env)  # fmt: skip
+            ndiv, ntr, _ = _run_counts(out, _steps_of(d))
+            note = f"engine {_engine_wall(out):.2f} s; {ndiv}/{ntr} (trial, filter) runs diverged"
+            target = status = ""
+            if temp == "warm":
+                warm[kernels] = wall
+                if kernels == "compiled":
+                    proj = wall * cfg.target_trials / T
+                    target = f"<= {TARGET_E2E_S:g} s ({cfg.target_trials:,} trials)"
+                    status = judge(proj, TARGET_E2E_S, "max", reduced)
+                    if reduced:
+                        note = f"*projected {proj:.1f} s for {cfg.target_trials:,} trials (linear); " + note
+            rows.append(Row("e2e", "iekf+ekf", f"wall, {T:,} trials, --jobs {J}, {kernels}, {temp}", wall, "s",
+                            target, status, note))  # fmt: skip
+            if not cfg.keep_runs:
+                shutil.rmtree(out, ignore_errors=True)
+    rows.append(Row("e2e", "iekf+ekf", "ratio numpy / compiled (warm)", warm["numpy"] / warm["compiled"], "x"))
+    # start-up
+    helps = [_spmc(["--help"], env)[0] for _ in range(max(3, cfg.repeats))]
+    med = float(np.median(helps))
+    rows.append(Row("e2e", "-", "spmc --help, warm: median", med, "s", f"<= {TARGET_STARTUP_S:g} s",
+                    judge(med, TARGET_STARTUP_S, "max"), f"median of {len(helps)}"))  # fmt: skip
+    for kernels in KERNELS:
+        out = tmp / f"e2e-two-{kernels}"
+        args = ["run", str(scn), "--trials", "2", "--out", str(out), "--overwrite", "--quiet", "--no-report",
+                "--kernels", kernels]  # fmt: skip
+        _spmc(args, env)  # warm-up (compiles on a cold cache)
+        walls = [_spmc(args, env)[0] for _ in range(max(3, cfg.repeats))]
+        med = float(np.median(walls))
+        tgt, st = (f"<= {TARGET_STARTUP_S:g} s", judge(med, TARGET_STARTUP_S, "max")) if kernels == "compiled" else ("", "")
+        rows.append(Row("e2e", "iekf+ekf", f"2-trial run, warm, {kernels}: median", med, "s", tgt, st,
+                        f"median of {len(walls)}; interpreter, imports, truth, 2 trials, Parquet"))  # fmt: skip
+        shutil.rmtree(out, ignore_errors=True)
+    return rows
+
+
+def _run_filter(prep, fs, trials, kernels):
+    from stereopose_mc.mc.trial import run_filter
+
+    from .sections import _draws
+
+    noisy, x0 = _draws(prep, trials)
+    s = prep.setup
+
+    def go():
+        with np.errstate(all="ignore"):
+            return run_filter(x0, s, prep.truth, noisy.y, noisy.alpha, prep.exact.visible, fs, prep.bounds,
+                              kernels=kernels)  # fmt: skip
+
+    return go
+
+
+def steps(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
+    """Latency at B = 1, throughput vs B, update cost vs N, FilterPy per computed step; numpy vs compiled."""
+    with blas_limit(cfg.inproc_threads):
+        return _latency(cfg) + _throughput(cfg) + _features(cfg) + _filterpy(cfg)
+
+
+def _latency(cfg: BenchConfig) -> list[Row]:
+    from stereopose_mc.mc.trial import step_functions
+
+    from .sections import _single_trial_path, step_latencies
+
+    rows: list[Row] = []
+    prep = prepare(scenario_dict(cfg))
+    s = prep.setup
+    K = s.steps
+    k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
+    for kind in cfg.filters:
+        fs = prep.filter(kind)
+        path = None
+        for j in range(cfg.latency_candidates):
+            posts, stp, iters, ok = _single_trial_path(prep, fs, j)
+            if ok:
+                path = (j, posts, stp, iters)
+                break
+        if path is None:
+            continue
+        j, posts, stp, iters = path
+        med = {}
+        for kernels in KERNELS:
+            pred, upd = step_latencies(step_functions(kernels), prep, fs, posts, stp, k0, k1, cfg.latency_reps)
+            tot = np.add(pred, upd)
+            med[kernels] = 1e3 * float(np.median(tot))
+            tgt = st = ""
+            if kernels == "compiled" and s.n_points == 5:
+                tgt, st = f"<= {TARGET_STEP_MS[kind]:g} ms", judge(med[kernels], TARGET_STEP_MS[kind], "max")
+            rows.append(Row("steps", kind, f"latency B=1, step predict+update, {kernels}: median", med[kernels], "ms",
+                            tgt, st, f"trial {j}, steps {k0}-{k1}, {tot.size} samples; predict "
+                            f"{1e3 * np.median(pred):.3g} ms, update {1e3 * np.median(upd):.3g} ms; "
+                            f"mean iterations {np.mean(iters[k0 - 1:k1]):.2f}"))  # fmt: skip
+        rows.append(Row("steps", kind, "latency B=1: ratio numpy / compiled", med["numpy"] / med["compiled"], "x"))
+    return rows
+
+
+def _throughput(cfg: BenchConfig) -> list[Row]:
+    from .sections import _active_trial_steps
+
+    rows: list[Row] = []
+    prep = prepare(scenario_dict(cfg))
+    K = prep.setup.steps
+    for kind in cfg.filters:
+        fs = prep.filter(kind)
+        for B in sorted(cfg.chunk_trials):
+            rate = {}
+            for kernels in KERNELS:
+                go = _run_filter(prep, fs, np.arange(B), kernels)
+                go()  # warm-up
+                tm = timed(go, cfg.repeats, cfg.cheap_s)
+                n = _active_trial_steps(tm.result.diverged_step, K)
+                rate[kernels] = n / tm.median_s
+                rows.append(Row("steps", kind, f"throughput B={B}, {kernels}", rate[kernels], "trial-steps/s",
+                                note=f"run_filter in-process, {B} trials x {K} steps, median of {tm.n}; "
+                                     f"{n} trial-steps computed"))  # fmt: skip
+            rows.append(Row("steps", kind, f"throughput B={B}: ratio compiled / numpy", rate["compiled"] / rate["numpy"],
+                            "x"))  # fmt: skip
+    return rows
+
+
+def _features(cfg: BenchConfig) -> list[Row]:
+    """Update cost per trial-step vs the number of feature points (all visible), per kernels."""
+    from stereopose_mc.mc.trial import step_functions
+
+    from .sections import scaling_scenario
+
+    rows: list[Row] = []
+    trials = np.arange(cfg.scaling_batch)
+    for kind in cfg.filters:
+        cost: dict[str, dict[int, float]] = {k: {} for k in KERNELS}
+        for N in cfg.feature_points:
+            prep = prepare(scaling_scenario(cfg, kind, N))
+            fs, s = prep.filters[0], prep.setup
+            from .sections import _draws
+            from stereopose_mc.filters import relnav
+
+            noisy, x0 = _draws(prep, trials)
+            vis = prep.exact.visible[1]
+            step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo),
+                                          alpha=noisy.alpha[:, 1], visible=vis, t=prep.truth.t[1])  # fmt: skip
+            P0 = np.broadcast_to(np.diag(s.P0_diag), (trials.size,) + (s.x0.size,) * 2).copy()
+            for kernels in KERNELS:
+                sf = step_functions(kernels)
+                with np.errstate(all="ignore"):
+                    xa, Pa = sf.predict(x0, P0, prep.truth.t[0], fs, s)
+                    u = sf.update(xa, Pa, step, trials, fs, s)  # warm-up (and iterations)
+                    tm = timed(lambda: sf.update(xa, Pa, step, trials, fs, s), cfg.repeats, cfg.cheap_s)
+                cost[kernels][N] = tm.median_s / trials.size
+                rows.append(Row("steps", kind, f"update per trial-step, N={N} (n={s.x0.size}), {kernels}",
+                                1e6 * cost[kernels][N], "us",
+                                note=f"first update of {trials.size} trials, median of {tm.n}; "
+                                     f"mean iterations {np.mean(u.iterations):.2f}"))  # fmt: skip
+        for kernels in KERNELS:
+            Ns = sorted(cost[kernels])
+            p = fit_exponent(Ns, [cost[kernels][k] for k in Ns])
+            tgt, st = (f"<= {TARGET_UPDATE_EXPONENT:g}", judge(p, TARGET_UPDATE_EXPONENT, "max")) \
+                if kernels == "compiled" else ("", "")  # fmt: skip
+            rows.append(Row("steps", kind, f"update growth exponent p ~ N^p (N={Ns[0]}..{Ns[-1]}), {kernels}", p, "",
+                            tgt, st, "least squares of log(cost) on log N"))  # fmt: skip
+    return rows
+
+
+def _filterpy(cfg: BenchConfig) -> list[Row]:
+    from .filterpy_baseline import run_trials
+    from .sections import _active_trial_steps, _draws
+
+    prep = prepare(scenario_dict(cfg))
+    s = prep.setup
+    fs = prep.filter("ekf")
+    T = cfg.baseline_trials
+    trials = np.arange(T)
+    noisy, x0 = _draws(prep, trials)
+    K = s.steps
+    with np.errstate(all="ignore"):
+        fp = timed(lambda: run_trials(x0, noisy.y, noisy.alpha, prep.exact.visible, prep.truth, s, fs),
+                   cfg.repeats, cfg.cheap_s)  # fmt: skip
+    fp_sps = fp.result.steps_run / fp.median_s
+    rows = [Row("steps", "ekf", "FilterPy EKF loop, per computed step", 1e6 / fp_sps, "us",
+                note=f"{T} trials x {K} steps, median of {fp.n}")]  # fmt: skip
+    for kernels in KERNELS:
+        go = _run_filter(prep, fs, trials, kernels)
+        go()
+        tm = timed(go, cfg.repeats, cfg.cheap_s)
+        sps = _active_trial_steps(tm.result.diverged_step, K) / tm.median_s
+        tgt, st = (f">= {TARGET_FILTERPY_X:g}x", judge(sps / fp_sps, TARGET_FILTERPY_X, "min")) \
+            if kernels == "compiled" else ("", "")  # fmt: skip
+        rows.append(Row("steps", "ekf", f"ours / FilterPy per computed step, {kernels}", sps / fp_sps, "x", tgt, st,
+                        f"run_filter on the same {T} trials as one batch: {1e6 / sps:.3g} us per trial-step"))
+    return rows
+
+
+SECTION_FUNCS = {"e2e": e2e, "steps": steps}

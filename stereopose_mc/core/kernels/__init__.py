@@ -1,0 +1,7 @@
+"""Compiled (Numba) kernels, the fast twins of the numpy model and filter functions.
+
+Importing this package compiles nothing: the kernels are compiled on first call (or
+loaded from Numba's on-disk cache, ``cache=True``). ``core/kernels/model.py`` holds
+``f``, RK4, ``F``, the transition matrix and the block-structured covariance predict,
+``h`` and ``H`` per feature and the inertia pseudo-measurement rows.
+"""

@@ -1,0 +1,591 @@
+"""Compiled (Numba) twins of the model functions: ``f``, RK4, ``F``, ``Phi``, ``P-``, ``h``, ``H``.
+
+The numpy versions in ``core.dynamics``, ``core.jacobians``, ``core.camera``,
+``core.inertia`` and ``core.kalman`` are the readable reference; every kernel here
+computes the same equations (their docstrings give them) one trial at a time inside a
+loop over the batch, float64, without numpy temporaries, ``nogil`` so that threads run
+chunks in parallel, ``cache=True`` so that the compiled code is kept on disk after the
+first run. Inputs are batch-first: ``x (B, n)``, ``P (B, n, n)``.
+
+Structure that the kernels use (and the dense numpy code ignores):
+
+- ``F = df/dx`` is zero outside the rows of ``rho, rho_dot, omega, q`` (13) and, there,
+  outside the columns ``c = [0..12, k1, k2]`` (15). So ``F^j`` keeps that pattern and
+  ``Phi = expm(F dt)`` is the identity except ``Phi[0:13, c] = T`` (13 x 15); the
+  covariance predict ``P- = Phi P Phi^T + Q`` is then
+  ``P-[a, a] = T P[c, c] T^T``, ``P-[a, r] = T P[c, r]``, ``P-[r, r] = P[r, r]`` (``a = 0..12``,
+  ``r`` the rest), ``+ Q``: O(n) work instead of O(n^3).
+- The 8 (or 9) rows of feature ``i`` depend only on ``rho, rho_dot, omega, q`` and ``P_i``:
+  16 non-zero columns. The 3 pseudo-measurement rows touch ``omega, q, k`` (9 columns).
+  ``H`` is therefore returned row-sparse: values ``(B, m, 16)`` and their columns
+  ``(m, 16)`` (padding entries have value 0 and column 0).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+N_SHARED = 13  # rho, rho_dot, omega, q
+NNZ = 16  # non-zero columns of one measurement row
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+
+# --- attitude building blocks ------------------------------------------------------
+
+
+@njit(**_JIT)
+def _dcm(q, D):
+    """``D(q)`` of the normalized quaternion (homogeneous form, as ``quaternion.dcm``)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    D[0, 0] = (q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3) / n2
+    D[0, 1] = 2.0 * (q1 * q2 - q0 * q3) / n2
+    D[0, 2] = 2.0 * (q1 * q3 + q0 * q2) / n2
+    D[1, 0] = 2.0 * (q1 * q2 + q0 * q3) / n2
+    D[1, 1] = (q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3) / n2
+    D[1, 2] = 2.0 * (q2 * q3 - q0 * q1) / n2
+    D[2, 0] = 2.0 * (q1 * q3 - q0 * q2) / n2
+    D[2, 1] = 2.0 * (q2 * q3 + q0 * q1) / n2
+    D[2, 2] = (q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3) / n2
+    return n2
+
+
+@njit(**_JIT)
+def _dcm_derivative(q, D, dD):
+    """``D`` and ``dD[j] = dD/dq_j = (dA/dq_j - 2 q_j D) / |q|^2`` (``jacobians.dcm_derivative``)."""
+    n2 = _dcm(q, D)
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    dA = np.empty((4, 3, 3))
+    # dA/dq_j of the homogeneous numerator A(q) (jacobians._dA_dq_explicit)
+    dA[0, 0, 0], dA[0, 0, 1], dA[0, 0, 2] = q0, -q3, q2
+    dA[0, 1, 0], dA[0, 1, 1], dA[0, 1, 2] = q3, q0, -q1
+    dA[0, 2, 0], dA[0, 2, 1], dA[0, 2, 2] = -q2, q1, q0
+    dA[1, 0, 0], dA[1, 0, 1], dA[1, 0, 2] = q1, q2, q3
+    dA[1, 1, 0], dA[1, 1, 1], dA[1, 1, 2] = q2, -q1, -q0
+    dA[1, 2, 0], dA[1, 2, 1], dA[1, 2, 2] = q3, q0, -q1
+    dA[2, 0, 0], dA[2, 0, 1], dA[2, 0, 2] = -q2, q1, q0
+    dA[2, 1, 0], dA[2, 1, 1], dA[2, 1, 2] = q1, q2, q3
+    dA[2, 2, 0], dA[2, 2, 1], dA[2, 2, 2] = -q0, q3, -q2
+    dA[3, 0, 0], dA[3, 0, 1], dA[3, 0, 2] = -q3, -q0, q1
+    dA[3, 1, 0], dA[3, 1, 1], dA[3, 1, 2] = q0, -q3, q2
+    dA[3, 2, 0], dA[3, 2, 1], dA[3, 2, 2] = q1, q2, q3
+    for j in range(4):
+        for r in range(3):
+            for c in range(3):
+                dD[j, r, c] = (2.0 * dA[j, r, c] - 2.0 * q[j] * D[r, c]) / n2
+
+
+@njit(**_JIT)
+def _euler_terms(wT, k1, k2, g, G, dgdk):
+    """``g = -I^-1 (w_T x I w_T) = c * p``, ``G = dg/dw_T``, ``dg/dk`` (``jacobians._euler_terms``)."""
+    J1 = math.exp(k1)
+    J3 = math.exp(-k2)
+    c0, c1, c2 = (1.0 - J3) / J1, J3 - J1, (J1 - 1.0) / J3
+    w1, w2, w3 = wT[0], wT[1], wT[2]
+    p0, p1, p2 = w2 * w3, w3 * w1, w1 * w2
+    g[0], g[1], g[2] = c0 * p0, c1 * p1, c2 * p2
+    G[0, 0], G[0, 1], G[0, 2] = 0.0, c0 * w3, c0 * w2
+    G[1, 0], G[1, 1], G[1, 2] = c1 * w3, 0.0, c1 * w1
+    G[2, 0], G[2, 1], G[2, 2] = c2 * w2, c2 * w1, 0.0
+    dgdk[0, 0], dgdk[1, 0], dgdk[2, 0] = -p0 * (1.0 - J3) / J1, -p1 * J1, p2 * J1 / J3
+    dgdk[0, 1], dgdk[1, 1], dgdk[2, 1] = p0 * J3 / J1, -p1 * J3, p2 * (J1 - 1.0) / J3
+
+
+# --- process model --------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _f(x, rL, nd, ndd, mu, out, D):
+    """``out = f(x)`` for one trial (``dynamics.f``); ``D`` is 3 x 3 scratch."""
+    n = x.shape[0]
+    X, Y, Z = x[0], x[1], x[2]
+    vx, vy = x[3], x[4]
+    R3 = ((rL + X) ** 2 + Y * Y + Z * Z) ** 1.5
+    out[0], out[1], out[2] = x[3], x[4], x[5]
+    out[3] = 2.0 * nd * vy + ndd * Y + nd * nd * X - mu * (rL + X) / R3 + mu / (rL * rL)
+    out[4] = -2.0 * nd * vx - ndd * X + nd * nd * Y - mu * Y / R3
+    out[5] = -mu * Z / R3
+    _dcm(x[9:13], D)
+    w0, w1, w2 = x[6], x[7], x[8]
+    W2 = w2 + nd
+    # w_T = D^T (w + w_L); w_rel_T = D^T w
+    t0 = D[0, 0] * w0 + D[1, 0] * w1 + D[2, 0] * W2
+    t1 = D[0, 1] * w0 + D[1, 1] * w1 + D[2, 1] * W2
+    t2 = D[0, 2] * w0 + D[1, 2] * w1 + D[2, 2] * W2
+    r0 = D[0, 0] * w0 + D[1, 0] * w1 + D[2, 0] * w2
+    r1 = D[0, 1] * w0 + D[1, 1] * w1 + D[2, 1] * w2
+    r2 = D[0, 2] * w0 + D[1, 2] * w1 + D[2, 2] * w2
+    J0 = math.exp(x[n - 2])
+    J2 = math.exp(-x[n - 1])
+    # Euler: w_T' = -(w_T x I w_T) / I
+    e0 = -(t1 * (J2 * t2) - t2 * t1) / J0
+    e1 = -(t2 * (J0 * t0) - t0 * (J2 * t2))
+    e2 = -(t0 * t1 - t1 * (J0 * t0)) / J2
+    # w' = D w_T' - w_L x w - w_L'
+    out[6] = D[0, 0] * e0 + D[0, 1] * e1 + D[0, 2] * e2 + nd * w1
+    out[7] = D[1, 0] * e0 + D[1, 1] * e1 + D[1, 2] * e2 - nd * w0
+    out[8] = D[2, 0] * e0 + D[2, 1] * e1 + D[2, 2] * e2 - ndd
+    q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
+    out[9] = 0.5 * (-q1 * r0 - q2 * r1 - q3 * r2)
+    out[10] = 0.5 * (q0 * r0 + q2 * r2 - q3 * r1)
+    out[11] = 0.5 * (q0 * r1 - q1 * r2 + q3 * r0)
+    out[12] = 0.5 * (q0 * r2 + q1 * r1 - q2 * r0)
+    for i in range(13, n):
+        out[i] = 0.0
+
+
+@njit(**_JIT)
+def f_batch(x, rL, nd, ndd, mu):
+    """``f`` of every trial, ``(B, n)``."""
+    B, n = x.shape
+    out = np.empty((B, n))
+    D = np.empty((3, 3))
+    for b in range(B):
+        _f(x[b], rL, nd, ndd, mu, out[b], D)
+    return out
+
+
+@njit(**_JIT)
+def propagate_batch(x, rL, nd, ndd, h, mu, substeps, renormalize):
+    """RK4 of ``f`` (``dynamics.propagate``): ``substeps`` steps of ``h``.
+
+    ``rL, nd, ndd (2 substeps + 1,)`` are the leader's kinematics at ``t + i h / 2``.
+    With ``renormalize`` the quaternion of the result is normalized (``relnav.renormalize``).
+    """
+    B, n = x.shape
+    out = np.empty((B, n))
+    y = np.empty(n)
+    yt = np.empty(n)
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    D = np.empty((3, 3))
+    for b in range(B):
+        for i in range(n):
+            y[i] = x[b, i]
+        for j in range(substeps):
+            s = 2 * j
+            _f(y, rL[s], nd[s], ndd[s], mu, k1, D)
+            for i in range(n):
+                yt[i] = y[i] + 0.5 * h * k1[i]
+            _f(yt, rL[s + 1], nd[s + 1], ndd[s + 1], mu, k2, D)
+            for i in range(n):
+                yt[i] = y[i] + 0.5 * h * k2[i]
+            _f(yt, rL[s + 1], nd[s + 1], ndd[s + 1], mu, k3, D)
+            for i in range(n):
+                yt[i] = y[i] + h * k3[i]
+            _f(yt, rL[s + 2], nd[s + 2], ndd[s + 2], mu, k4, D)
+            for i in range(n):
+                y[i] = y[i] + (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+        if renormalize:
+            qn = math.sqrt(y[9] * y[9] + y[10] * y[10] + y[11] * y[11] + y[12] * y[12])
+            for i in range(9, 13):
+                y[i] = y[i] / qn
+        for i in range(n):
+            out[b, i] = y[i]
+    return out
+
+
+@njit(**_JIT)
+def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD):
+    """The non-zero block of ``F = df/dx`` (``jacobians.F``) on the columns ``c = [0..12, k1, k2]``.
+
+    ``Fr (13, 15)``: rows ``rho, rho_dot, omega, q``; columns 0-12 and 13-14 (``k``).
+    """
+    n = x.shape[0]
+    for i in range(13):
+        for j in range(15):
+            Fr[i, j] = 0.0
+    Fr[0, 3] = Fr[1, 4] = Fr[2, 5] = 1.0
+    s0, s1, s2 = rL + x[0], x[1], x[2]
+    R2 = s0 * s0 + s1 * s1 + s2 * s2
+    cg = -mu / R2**1.5
+    sv = (s0, s1, s2)
+    for i in range(3):
+        for j in range(3):
+            Fr[3 + i, j] = cg * ((1.0 if i == j else 0.0) - 3.0 * sv[i] * sv[j] / R2)
+    Fr[3, 0] += nd * nd
+    Fr[4, 1] += nd * nd
+    Fr[3, 1] += ndd
+    Fr[4, 0] -= ndd
+    Fr[3, 4] = 2.0 * nd
+    Fr[4, 3] = -2.0 * nd
+    _dcm_derivative(x[9:13], D, dD)
+    w = x[6:9]
+    W = np.empty(3)
+    W[0], W[1], W[2] = w[0], w[1], w[2] + nd
+    wT = np.empty(3)
+    v = np.empty(3)
+    for i in range(3):
+        wT[i] = D[0, i] * W[0] + D[1, i] * W[1] + D[2, i] * W[2]
+        v[i] = D[0, i] * w[0] + D[1, i] * w[1] + D[2, i] * w[2]
+    g = np.empty(3)
+    G = np.empty((3, 3))
+    dgdk = np.empty((3, 2))
+    _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
+    DG = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            DG[i, j] = D[i, 0] * G[0, j] + D[i, 1] * G[1, j] + D[i, 2] * G[2, j]
+    for i in range(3):
+        for j in range(3):
+            Fr[6 + i, 6 + j] = DG[i, 0] * D[j, 0] + DG[i, 1] * D[j, 1] + DG[i, 2] * D[j, 2]
+    Fr[6, 7] += nd
+    Fr[7, 6] -= nd
+    dW = np.empty(3)
+    dw = np.empty(3)
+    for j in range(4):
+        for i in range(3):  # dD_j^T W and dD_j^T w
+            dW[i] = dD[j, 0, i] * W[0] + dD[j, 1, i] * W[1] + dD[j, 2, i] * W[2]
+            dw[i] = dD[j, 0, i] * w[0] + dD[j, 1, i] * w[1] + dD[j, 2, i] * w[2]
+        for i in range(3):
+            Fr[6 + i, 9 + j] = (dD[j, i, 0] * g[0] + dD[j, i, 1] * g[1] + dD[j, i, 2] * g[2]
+                                + DG[i, 0] * dW[0] + DG[i, 1] * dW[1] + DG[i, 2] * dW[2])  # fmt: skip
+        # q <- q_j: 1/2 (M(D^T w)[:, j] + Q(q) dD_j^T w)
+        q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
+        Fr[9, 9 + j] = 0.5 * (-q1 * dw[0] - q2 * dw[1] - q3 * dw[2])
+        Fr[10, 9 + j] = 0.5 * (q0 * dw[0] - q3 * dw[1] + q2 * dw[2])
+        Fr[11, 9 + j] = 0.5 * (q3 * dw[0] + q0 * dw[1] - q1 * dw[2])
+        Fr[12, 9 + j] = 0.5 * (-q2 * dw[0] + q1 * dw[1] + q0 * dw[2])
+    # M(v) = d(q (x) [0, v])/dq
+    Fr[9, 10] += -0.5 * v[0]
+    Fr[9, 11] += -0.5 * v[1]
+    Fr[9, 12] += -0.5 * v[2]
+    Fr[10, 9] += 0.5 * v[0]
+    Fr[10, 11] += 0.5 * v[2]
+    Fr[10, 12] += -0.5 * v[1]
+    Fr[11, 9] += 0.5 * v[1]
+    Fr[11, 10] += -0.5 * v[2]
+    Fr[11, 12] += 0.5 * v[0]
+    Fr[12, 9] += 0.5 * v[2]
+    Fr[12, 10] += 0.5 * v[1]
+    Fr[12, 11] += -0.5 * v[0]
+    for i in range(3):
+        for j in range(2):
+            Fr[6 + i, 13 + j] = D[i, 0] * dgdk[0, j] + D[i, 1] * dgdk[1, j] + D[i, 2] * dgdk[2, j]
+    # q <- w: 1/2 Q(q) D^T
+    q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
+    for j in range(3):
+        Fr[9, 6 + j] = 0.5 * (-q1 * D[j, 0] - q2 * D[j, 1] - q3 * D[j, 2])
+        Fr[10, 6 + j] = 0.5 * (q0 * D[j, 0] - q3 * D[j, 1] + q2 * D[j, 2])
+        Fr[11, 6 + j] = 0.5 * (q3 * D[j, 0] + q0 * D[j, 1] - q1 * D[j, 2])
+        Fr[12, 6 + j] = 0.5 * (-q2 * D[j, 0] + q1 * D[j, 1] + q0 * D[j, 2])
+
+
+@njit(**_JIT)
+def F_reduced_batch(x, rL, nd, ndd, mu):
+    """``F[:, 0:13, c]`` (``B, 13, 15``), ``c = [0..12, n-2, n-1]``: the only non-zero block of ``F``."""
+    B = x.shape[0]
+    out = np.empty((B, 13, 15))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _F_reduced(x[b], rL, nd, ndd, mu, out[b], D, dD)
+    return out
+
+
+@njit(**_JIT)
+def F_batch(x, rL, nd, ndd, mu):
+    """Dense ``F = df/dx`` (``B, n, n``), for tests and the numpy-shaped API."""
+    B, n = x.shape
+    Fr = F_reduced_batch(x, rL, nd, ndd, mu)
+    out = np.zeros((B, n, n))
+    for b in range(B):
+        for i in range(13):
+            for j in range(13):
+                out[b, i, j] = Fr[b, i, j]
+            out[b, i, n - 2] = Fr[b, i, 13]
+            out[b, i, n - 1] = Fr[b, i, 14]
+    return out
+
+
+@njit(**_JIT)
+def _taylor_reduced(Fr, dt, order, T, A, tmp):
+    """``T = Phi[0:13, c]`` of ``Phi = sum_{j<=order} (F dt)^j / j!`` by Horner (``kalman.transition_matrix``).
+
+    On the 15 columns ``c`` the reduced ``F`` is the square ``[[Fr], [0]]`` (15 x 15).
+    """
+    # A = [[Fr dt], [0]] (15 x 15); Phi15 = I + A/order; Phi15 = I + A Phi15 / j
+    for i in range(15):
+        for j in range(15):
+            A[i, j] = Fr[i, j] * dt if i < 13 else 0.0
+            T[i, j] = (1.0 if i == j else 0.0) + A[i, j] / order
+    for jj in range(order - 1, 0, -1):
+        for i in range(13):
+            for j in range(15):
+                s = 0.0
+                for l in range(15):
+                    s += A[i, l] * T[l, j]
+                tmp[i, j] = s
+        for i in range(13):
+            for j in range(15):
+                T[i, j] = (1.0 if i == j else 0.0) + tmp[i, j] / jj
+        # rows 13, 14 stay the identity (A is zero there)
+
+
+@njit(**_JIT)
+def transition_reduced_batch(Fr, dt, order):
+    """``Phi[:, 0:13, c]`` (``B, 13, 15``) from ``F_reduced_batch``: the rest of ``Phi`` is the identity."""
+    B = Fr.shape[0]
+    out = np.empty((B, 13, 15))
+    T = np.empty((15, 15))
+    A = np.empty((15, 15))
+    tmp = np.empty((13, 15))
+    Fp = np.zeros((15, 15))
+    for b in range(B):
+        for i in range(13):
+            for j in range(15):
+                Fp[i, j] = Fr[b, i, j]
+        _taylor_reduced(Fp, dt, order, T, A, tmp)
+        for i in range(13):
+            for j in range(15):
+                out[b, i, j] = T[i, j]
+    return out
+
+
+@njit(**_JIT)
+def predict_covariance_batch(P, T, Q):
+    """``P- = Phi P Phi^T + Q``, symmetrized, for ``Phi`` = identity except ``Phi[0:13, c] = T``.
+
+    ``Q (B, n)`` the diagonal of the process noise (``kalman.predict_covariance``).
+    """
+    B, n, _ = P.shape
+    out = np.empty((B, n, n))
+    cols = np.empty(15, np.int64)
+    for j in range(13):
+        cols[j] = j
+    cols[13], cols[14] = n - 2, n - 1
+    TP = np.empty((13, n))  # T P[c, :]
+    for b in range(B):
+        for i in range(13):
+            for j in range(n):
+                s = 0.0
+                for l in range(15):
+                    s += T[b, i, l] * P[b, cols[l], j]
+                TP[i, j] = s
+        for i in range(n):
+            for j in range(n):
+                out[b, i, j] = P[b, i, j]
+        # rows/cols 0..12 against the rest: (T P)[a, r]; against themselves: (T P)[a, c] T^T
+        for i in range(13):
+            for j in range(13, n):
+                out[b, i, j] = TP[i, j]
+                out[b, j, i] = TP[i, j]
+            for j in range(i, 13):
+                s = 0.0
+                for l in range(15):
+                    s += TP[i, cols[l]] * T[b, j, l]
+                out[b, i, j] = s
+                out[b, j, i] = s
+        # k rows/cols (n-2, n-1) are not in 0..12: they took (T P)[a, k] above
+        for i in range(n):
+            out[b, i, i] += Q[b, i]
+    return out
+
+
+# --- measurement model ----------------------------------------------------------
+
+
+@njit(**_JIT)
+def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow, Hval):
+    """``h`` (``hrow (C,)``) and the 16 non-zero Jacobian columns (``Hval (C, 16)``) of feature ``i``.
+
+    Columns 0-12 are ``rho, rho_dot, omega, q``, 13-15 the point ``P_i`` (``jacobians.H_features_compact``).
+    """
+    p0 = 13 + 3 * i
+    P = x[p0 : p0 + 3]
+    r = np.empty(3)
+    for a in range(3):
+        r[a] = D[a, 0] * P[0] + D[a, 1] * P[1] + D[a, 2] * P[2]
+    X, Y, Z = x[0] + r[0], x[1] + r[1], x[2] + r[2]
+    vX = x[3] + (w[1] * r[2] - w[2] * r[1])
+    vY = x[4] + (w[2] * r[0] - w[0] * r[2])
+    vZ = x[5] + (w[0] * r[1] - w[1] * r[0])
+    iy = 1.0 / Y
+    xl = X - baseline
+    u_r, v_r, u_l = X * iy, Z * iy, xl * iy
+    hrow[0] = u_r * focal
+    hrow[1] = v_r * focal
+    hrow[2] = u_l * focal
+    hrow[3] = v_r * focal
+    hrow[4] = (vX * Y - X * vY) * iy * iy * focal
+    hrow[5] = (vZ * Y - Z * vY) * iy * iy * focal
+    hrow[6] = (vX * Y - xl * vY) * iy * iy * focal
+    hrow[7] = hrow[5]
+    C = 9 if disparity else 8
+    if disparity:
+        hrow[8] = (u_l - u_r) * focal
+    if not compute_jac:
+        return
+    iy2 = iy * iy
+    J = np.zeros((9, 6))  # [dh/d rho_i | dh/d rho_dot_i] (jacobians._projection_gradients)
+    J[0, 0] = J[2, 0] = iy
+    J[0, 1] = -X * iy2
+    J[2, 1] = -xl * iy2
+    J[1, 1] = J[3, 1] = -Z * iy2
+    J[1, 2] = J[3, 2] = iy
+    for a in range(4):
+        for c in range(3):
+            J[4 + a, 3 + c] = J[a, c]
+    vyy = 2.0 * vY * iy2 * iy
+    vy2 = -vY * iy2
+    J[4, 0] = J[6, 0] = vy2
+    J[4, 1] = -vX * iy2 + X * vyy
+    J[6, 1] = -vX * iy2 + xl * vyy
+    J[5, 1] = J[7, 1] = -vZ * iy2 + Z * vyy
+    J[5, 2] = J[7, 2] = vy2
+    if disparity:
+        J[8, 1] = baseline * iy2
+    # K0 = [dr/dq_j (4 cols) | D (3 cols)] (3 x 7)
+    K0 = np.empty((3, 7))
+    for j in range(4):
+        for a in range(3):
+            K0[a, j] = dD[j, a, 0] * P[0] + dD[j, a, 1] * P[1] + dD[j, a, 2] * P[2]
+    for a in range(3):
+        for c in range(3):
+            K0[a, 4 + c] = D[a, c]
+    for c in range(C):
+        jp0, jp1, jp2 = J[c, 0], J[c, 1], J[c, 2]
+        jv0, jv1, jv2 = J[c, 3], J[c, 4], J[c, 5]
+        Hval[c, 0], Hval[c, 1], Hval[c, 2] = jp0 * focal, jp1 * focal, jp2 * focal
+        Hval[c, 3], Hval[c, 4], Hval[c, 5] = jv0 * focal, jv1 * focal, jv2 * focal
+        # d/dw = -Jv [r x] = r x Jv
+        Hval[c, 6] = (r[1] * jv2 - r[2] * jv1) * focal
+        Hval[c, 7] = (r[2] * jv0 - r[0] * jv2) * focal
+        Hval[c, 8] = (r[0] * jv1 - r[1] * jv0) * focal
+        # d/d[q, P_i] = (Jp + Jv [w x]) K0 = (Jp + Jv x w) K0
+        e0 = jp0 + (jv1 * w[2] - jv2 * w[1])
+        e1 = jp1 + (jv2 * w[0] - jv0 * w[2])
+        e2 = jp2 + (jv0 * w[1] - jv1 * w[0])
+        for j in range(7):
+            Hval[c, 9 + j] = (e0 * K0[0, j] + e1 * K0[1, j] + e2 * K0[2, j]) * focal
+
+
+@njit(**_JIT)
+def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
+    """Euler residual ``h_pseudo`` (3,) and its 9 non-zero Jacobian columns ``[omega, q, k]`` (``Hval (3, 16)``)."""
+    n = x.shape[0]
+    w0, w1, w2 = x[6], x[7], x[8]
+    W = np.empty(3)
+    W[0], W[1], W[2] = w0, w1, w2 + nd
+    a = np.empty(3)
+    a[0] = alpha[0] - nd * w1
+    a[1] = alpha[1] + nd * w0
+    a[2] = alpha[2] + ndd
+    wT = np.empty(3)
+    for i in range(3):
+        wT[i] = D[0, i] * W[0] + D[1, i] * W[1] + D[2, i] * W[2]
+    J0 = math.exp(x[n - 2])
+    J2 = math.exp(-x[n - 1])
+    Iw0, Iw1, Iw2 = J0 * wT[0], wT[1], J2 * wT[2]
+    gy0 = (wT[1] * Iw2 - wT[2] * Iw1) / J0
+    gy1 = wT[2] * Iw0 - wT[0] * Iw2
+    gy2 = (wT[0] * Iw1 - wT[1] * Iw0) / J2
+    hrow[0] = D[0, 0] * a[0] + D[1, 0] * a[1] + D[2, 0] * a[2] + gy0
+    hrow[1] = D[0, 1] * a[0] + D[1, 1] * a[1] + D[2, 1] * a[2] + gy1
+    hrow[2] = D[0, 2] * a[0] + D[1, 2] * a[1] + D[2, 2] * a[2] + gy2
+    if not compute_jac:
+        return
+    g = np.empty(3)
+    G = np.empty((3, 3))
+    dgdk = np.empty((3, 2))
+    _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
+    for i in range(3):
+        for c in range(16):
+            Hval[i, c] = 0.0
+        # dh/dw = -G D^T + nd [D^T e_y, -D^T e_x, 0]
+        for j in range(3):
+            Hval[i, j] = -(G[i, 0] * D[j, 0] + G[i, 1] * D[j, 1] + G[i, 2] * D[j, 2])
+        Hval[i, 0] += nd * D[1, i]
+        Hval[i, 1] -= nd * D[0, i]
+    for j in range(4):
+        for i in range(3):
+            da = dD[j, 0, i] * a[0] + dD[j, 1, i] * a[1] + dD[j, 2, i] * a[2]
+            s = 0.0
+            for l in range(3):
+                s += G[i, l] * (dD[j, 0, l] * W[0] + dD[j, 1, l] * W[1] + dD[j, 2, l] * W[2])
+            Hval[i, 3 + j] = da - s
+    for i in range(3):
+        Hval[i, 7] = -dgdk[i, 0]
+        Hval[i, 8] = -dgdk[i, 1]
+
+
+@njit(**_JIT)
+def measurement_columns(n, vis, channels, pseudo):
+    """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``."""
+    nv = vis.shape[0]
+    m = nv * channels + (3 if pseudo else 0)
+    cols = np.zeros((m, NNZ), np.int64)
+    for f in range(nv):
+        p0 = 13 + 3 * vis[f]
+        for c in range(channels):
+            row = f * channels + c
+            for j in range(13):
+                cols[row, j] = j
+            for j in range(3):
+                cols[row, 13 + j] = p0 + j
+    if pseudo:
+        for i in range(3):
+            row = nv * channels + i
+            for j in range(7):
+                cols[row, j] = 6 + j
+            cols[row, 7] = n - 2
+            cols[row, 8] = n - 1
+    return cols
+
+
+@njit(**_JIT)
+def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD):
+    """``h`` and row-sparse ``H`` of one trial (``relnav.measurement_model``)."""
+    C = 9 if disparity else 8
+    _dcm_derivative(x[9:13], D, dD)
+    w = x[6:9]
+    nv = vis.shape[0]
+    for f in range(nv):
+        _feature_rows(x, vis[f], baseline, disparity, focal, D, dD, w, compute_jac,
+                      hx[f * C : (f + 1) * C], Hval[f * C : (f + 1) * C])  # fmt: skip
+    if pseudo:
+        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3])
+
+
+@njit(**_JIT)
+def measure_batch(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
+    """``h (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H`` (columns: ``measurement_columns``).
+
+    Rows: per visible feature ``vis`` its 8 (9) channels, then the 3 pseudo rows with
+    the per-trial measured acceleration ``alpha (B, 3)``.
+    """
+    B, n = x.shape
+    C = 9 if disparity else 8
+    m = vis.shape[0] * C + (3 if pseudo else 0)
+    hx = np.empty((B, m))
+    Hval = np.zeros((B, m, NNZ))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac, hx[b], Hval[b],
+                     D, dD)  # fmt: skip
+    return hx, Hval
+
+
+def dense(Hval: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
+    """Dense ``(B, m, n)`` from the row-sparse ``H`` (duplicate padding columns carry value 0)."""
+    B, m, _ = Hval.shape
+    out = np.zeros((B, m, n))
+    rows = np.repeat(np.arange(m), NNZ)
+    np.add.at(out, (slice(None), rows, cols.ravel()), Hval.reshape(B, -1))
+    return out
+
+
+def dense_transition(T: np.ndarray, n: int) -> np.ndarray:
+    """Dense ``Phi (B, n, n)`` from ``transition_reduced_batch``'s block."""
+    B = T.shape[0]
+    Phi = np.broadcast_to(np.eye(n), (B, n, n)).copy()
+    c = np.r_[0:13, n - 2, n - 1]
+    Phi[:, 0:13, c] = T
+    return Phi

@@ -1,0 +1,449 @@
+"""Compiled (Numba) EKF and IEKF measurement updates on the row-sparse ``H`` of the model.
+
+Twins of ``core.kalman.ekf_update`` and ``core.kalman.iekf_update`` (whose docstrings give
+the equations), fused with the measurement model of ``core.kernels.model`` and run one
+trial at a time: every product with ``H`` touches only the 16 non-zero columns of a row
+(a feature's rows see ``rho, rho_dot, omega, q`` and its own point; the pseudo rows
+``omega, q, k``), the symmetric positive definite systems (``S`` for the EKF, the whitened
+``A = I + Hw^T Hw`` for the IEKF, ``P-`` itself) are solved by small hand-written Cholesky
+factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the optimal gain
+(``P - W^T W`` for the EKF, ``L A^-1 L^T`` for the IEKF, positive semi-definite by
+construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
+line search (MAP cost, step halving) and unit-free stopping test run per trial.
+
+A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
+the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
+``h = y`` and ``H = 0`` on that row.
+
+Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
+path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model import NNZ, _measure_one
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
+CONTROL = {"none": 0, "line_search": 1}
+
+
+@njit(**_JIT)
+def _cholesky(A, L):
+    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
+
+    Right-looking on ``U = L^T`` held by rows, so that the trailing update is a contiguous
+    axpy per row (vectorizable without reassociating sums).
+    """
+    n = A.shape[0]
+    U = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            U[i, j] = A[j, i]
+    for k in range(n):
+        d = U[k, k]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        for j in range(k, n):
+            U[k, j] /= d
+        for i in range(k + 1, n):
+            a = U[k, i]
+            if a != 0.0:
+                for j in range(i, n):
+                    U[i, j] -= a * U[k, j]
+    for i in range(n):
+        for j in range(i + 1):
+            L[i, j] = U[j, i]
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _chol_solve(L, b):
+    """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
+    n = L.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * b[k]
+        b[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * b[k]
+        b[i] = s / L[i, i]
+
+
+@njit(**_JIT)
+def _masked(hx, Hval, y, mask):
+    """Rows out of the update: ``h = y``, ``H = 0``."""
+    for r in range(hx.shape[0]):
+        if not mask[r]:
+            hx[r] = y[r]
+            for k in range(NNZ):
+                Hval[r, k] = 0.0
+
+
+@njit(**_JIT)
+def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols):
+    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, ``P+``.
+
+    ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its optimal gain, as
+    ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to round-off, exactly
+    symmetric, at a third of the cost.
+
+    Returns ``(x+, P+, nu, nis, ok)``; the quaternion of ``x+`` is renormalized.
+    """
+    B, n = x.shape
+    m = y.shape[1]
+    xo = np.empty((B, n))
+    Po = np.empty((B, n, n))
+    nu = np.empty((B, m))
+    nis = np.empty(B)
+    ok = np.ones(B, np.bool_)
+    hx = np.empty(m)
+    Hval = np.zeros((m, NNZ))
+    HP = np.empty((m, n))
+    S = np.empty((m, m))
+    Ls = np.empty((m, m))
+    Z = np.empty((m, n + 1))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _masked(hx, Hval, y[b], mask[b])
+        for r in range(m):
+            nu[b, r] = y[b, r] - hx[r]
+            for j in range(n):
+                HP[r, j] = 0.0
+            for k in range(NNZ):
+                h = Hval[r, k]
+                if h != 0.0:
+                    c = cols[r, k]
+                    for j in range(n):
+                        HP[r, j] += h * P[b, c, j]
+        for r in range(m):
+            for q in range(r + 1):
+                s = 0.0
+                for k in range(NNZ):
+                    s += HP[r, cols[q, k]] * Hval[q, k]
+                S[r, q] = s
+            S[r, r] += R[b, r]
+        if not _cholesky(S, Ls):
+            ok[b] = False
+            continue
+        # W = Ls^-1 [H P | nu] (forward substitution, row axpys): with K = P H^T S^-1,
+        # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
+        # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
+        for r in range(m):
+            for j in range(n):
+                Z[r, j] = HP[r, j]
+            Z[r, n] = nu[b, r]
+            for k in range(r):
+                a = Ls[r, k]
+                for j in range(n + 1):
+                    Z[r, j] -= a * Z[k, j]
+            d = Ls[r, r]
+            for j in range(n + 1):
+                Z[r, j] /= d
+        v = 0.0
+        for i in range(n):
+            xo[b, i] = x[b, i]
+        Pb = Po[b]
+        for i in range(n):
+            for j in range(i + 1):
+                Pb[i, j] = P[b, i, j]
+        for r in range(m):
+            a = Z[r, n]
+            v += a * a
+            for i in range(n):
+                xo[b, i] += Z[r, i] * a
+                c = Z[r, i]
+                if c != 0.0:
+                    for j in range(i + 1):
+                        Pb[i, j] -= c * Z[r, j]
+        for i in range(n):
+            for j in range(i):
+                Pb[j, i] = Pb[i, j]
+        nis[b] = v
+        _normalize_q(xo[b])
+    return xo, Po, nu, nis, ok
+
+
+@njit(**_JIT)
+def _normalize_q(x):
+    qn = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
+    for i in range(9, 13):
+        x[i] = x[i] / qn
+
+
+@njit(**_JIT)
+def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
+    """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
+
+    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular) and
+    ``A += Hw[r]^T Hw[r]`` on the lower triangle, contiguous inner loops.
+    """
+    m, n = Hw.shape
+    for i in range(n):
+        for j in range(i + 1):
+            A[i, j] = 0.0
+        A[i, i] = 1.0
+    for r in range(m):
+        rw[r] = (yb[r] - hx[r]) * rws[r]
+        for j in range(n):
+            Hw[r, j] = 0.0
+        for k in range(NNZ):
+            h = Hval[r, k] * rws[r]
+            if h != 0.0:
+                c = cols[r, k]
+                for j in range(c + 1):
+                    Hw[r, j] += h * L[c, j]
+        for i in range(n):
+            a = Hw[r, i]
+            if a != 0.0:
+                for j in range(i + 1):
+                    A[i, j] += a * Hw[r, j]
+    for i in range(n):
+        for j in range(i):
+            A[j, i] = A[i, j]
+
+
+@njit(**_JIT)
+def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, xt, hx, Hdummy, D, dD):
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` (``h`` only)."""
+    _to_x(xp, L, z, xt)
+    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, D, dD)
+    c = 0.0
+    for i in range(z.shape[0]):
+        c += z[i] * z[i]
+    for r in range(hx.shape[0]):
+        if mask[r]:
+            e = (yb[r] - hx[r]) * rws[r]
+            c += e * e
+    return c
+
+
+@njit(**_JIT)
+def _keep_linearization(A, Afin):
+    """Copy the iterate's ``A = I + Hw^T Hw`` (that of the last accepted step gives ``P+``)."""
+    Afin[:, :] = A
+
+
+@njit(**_JIT)
+def _mul_t(M, v, out):
+    """``out = M^T v`` (``M (m, n)``), row by row."""
+    m, n = M.shape
+    for i in range(n):
+        out[i] = 0.0
+    for r in range(m):
+        a = v[r]
+        for i in range(n):
+            out[i] += M[r, i] * a
+
+
+@njit(**_JIT)
+def _posterior_covariance(L, LA, out, X):
+    """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``."""
+    n = L.shape[0]
+    for i in range(n):
+        for j in range(n):
+            X[i, j] = L[j, i]
+        for k in range(i):
+            a = LA[i, k]
+            for j in range(n):
+                X[i, j] -= a * X[k, j]
+        d = LA[i, i]
+        for j in range(n):
+            X[i, j] /= d
+    for i in range(n):
+        for j in range(i + 1):
+            out[i, j] = 0.0
+    for k in range(n):
+        for i in range(n):
+            a = X[k, i]
+            if a != 0.0:
+                for j in range(i + 1):
+                    out[i, j] += a * X[k, j]
+    for i in range(n):
+        for j in range(i):
+            out[j, i] = out[i, j]
+
+
+@njit(**_JIT)
+def _to_x(xp, L, z, out):
+    """``out = x- + L z`` (``L`` lower triangular)."""
+    n = xp.shape[0]
+    for i in range(n):
+        s = xp[i]
+        for j in range(i + 1):
+            s += L[i, j] * z[j]
+        out[i] = s
+
+
+@njit(**_JIT)
+def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols,
+                      tol, max_iter, control, stopping, max_halvings):  # fmt: skip
+    """Gauss-Newton IEKF in whitened coordinates ``x = x- + L z`` (``kalman.iekf_update``), per trial.
+
+    ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw.
+    Returns ``(x+, P+, nu, nis, iterations, converged, ok)``; the quaternion of ``x+`` is renormalized.
+    """
+    B, n = x.shape
+    m = y.shape[1]
+    xo = np.empty((B, n))
+    Po = np.empty((B, n, n))
+    nu = np.empty((B, m))
+    nis = np.empty(B)
+    its = np.zeros(B, np.int64)
+    conv = np.zeros(B, np.bool_)
+    ok = np.ones(B, np.bool_)
+    hx = np.empty(m)
+    Hval = np.zeros((m, NNZ))
+    Hdummy = np.zeros((m, NNZ))
+    L = np.empty((n, n))
+    Hw = np.empty((m, n))
+    rw = np.empty(m)
+    v = np.empty(m)
+    A = np.empty((n, n))
+    Afin = np.empty((n, n))
+    LA = np.empty((n, n))
+    rws = np.empty(m)
+    z = np.zeros(n)
+    zn = np.empty(n)
+    zt = np.empty(n)
+    d = np.empty(n)
+    g = np.empty(n)
+    xt = np.empty(n)
+    dx = np.empty(n)
+    T = np.empty((n, n))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        xp = x[b]
+        yb = y[b]
+        mk = mask[b]
+        for r in range(m):
+            rws[r] = 1.0 / math.sqrt(R[b, r])
+        if not _cholesky(P[b], L):
+            ok[b] = False
+            continue
+        _measure_one(xp, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _masked(hx, Hval, yb, mk)
+        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        for r in range(m):
+            nu[b, r] = yb[r] - hx[r]
+        # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
+        if not _cholesky(A, LA):
+            ok[b] = False
+            continue
+        c0 = 0.0
+        for r in range(m):
+            c0 += rw[r] * rw[r]
+        _mul_t(Hw, rw, g)
+        for i in range(n):
+            d[i] = g[i]
+        _chol_solve(LA, d)
+        s = 0.0
+        for i in range(n):
+            s += g[i] * d[i]
+        nis[b] = c0 - s
+        cost = c0
+        for i in range(n):
+            z[i] = 0.0
+        _keep_linearization(A, Afin)
+        failed = False
+        for it in range(max_iter):
+            # z_GN = A^-1 Hw^T (rw + Hw z)
+            for r in range(m):
+                s = rw[r]
+                for j in range(n):
+                    s += Hw[r, j] * z[j]
+                v[r] = s
+            _mul_t(Hw, v, zn)
+            if it > 0 and not _cholesky(A, LA):
+                failed = True
+                break
+            _chol_solve(LA, zn)
+            accepted = True
+            c_new = cost
+            if control == 1:  # backtracking line search on the MAP cost
+                for i in range(n):
+                    d[i] = zn[i] - z[i]
+                a = 1.0
+                accepted = False
+                for _h in range(max_halvings + 1):
+                    for i in range(n):
+                        zt[i] = z[i] + a * d[i]
+                    ct = _cost_at(zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
+                                  xt, hx, Hdummy, D, dD)  # fmt: skip
+                    if math.isfinite(ct) and ct <= cost:
+                        accepted = True
+                        c_new = ct
+                        for i in range(n):
+                            zn[i] = zt[i]
+                        break
+                    a *= 0.5
+                if not accepted:
+                    for i in range(n):
+                        zn[i] = z[i]
+            its[b] += 1
+            # size of the increment dz = zn - z
+            size = 0.0
+            if stopping == 0:
+                for i in range(n):
+                    size += (zn[i] - z[i]) ** 2
+                for r in range(m):
+                    s = 0.0
+                    for j in range(n):
+                        s += Hw[r, j] * (zn[j] - z[j])
+                    size += s * s
+                size = math.sqrt(size)
+            elif stopping == 1:
+                for i in range(n):
+                    size += (zn[i] - z[i]) ** 2
+                size = math.sqrt(size)
+            else:
+                for i in range(n):
+                    s = 0.0
+                    for j in range(i + 1):
+                        s += L[i, j] * (zn[j] - z[j])
+                    dx[i] = s
+                if stopping == 2:
+                    for i in range(n):
+                        size = max(size, abs(dx[i]) / math.sqrt(P[b, i, i]))
+                else:
+                    for i in range(n):
+                        size += dx[i] * dx[i]
+                    size = math.sqrt(size)
+            small = accepted and size < tol
+            if accepted:
+                _keep_linearization(A, Afin)
+            for i in range(n):
+                z[i] = zn[i]
+            cost = c_new
+            if small:
+                conv[b] = True
+            if small or (control == 1 and not accepted) or it == max_iter - 1:
+                break
+            _to_x(xp, L, z, xt)
+            _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+            _masked(hx, Hval, yb, mk)
+            _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        if failed or not _cholesky(Afin, LA):
+            ok[b] = False
+            continue
+        _to_x(xp, L, z, xo[b])
+        _normalize_q(xo[b])
+        # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
+        # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
+        _posterior_covariance(L, LA, Po[b], T)
+    return xo, Po, nu, nis, its, conv, ok

@@ -1,0 +1,176 @@
+"""The filter step of ``filters.relnav`` on the compiled kernels (``--kernels compiled``).
+
+Same functions, same arguments, same results (to round-off) as ``relnav.predict`` and
+``relnav.update``; ``relnav`` stays the readable reference. What changes is where the
+work is done:
+
+- prediction: ``F`` only on its non-zero block, ``Phi`` by Taylor/Horner on that
+  15-column block (``expm`` when the scenario asks for it, on the same block), RK4 fused
+  per trial, ``P- = Phi P Phi^T + Q`` block-structured (``core.kernels.model``);
+- measurement: ``h`` and the row-sparse ``H`` per feature in one compiled pass; the
+  update fused with the measurement model, per trial, on the row-sparse ``H``
+  (``core.kernels.update``): EKF, and IEKF with line search or plain Gauss-Newton steps
+  (Levenberg-Marquardt runs ``relnav.update``); the gate's distances come from the
+  compiled ``h``/``H`` and the numpy gating functions.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..config.resolve import FilterSetup, Setup
+from ..core.kernels import model as km
+from ..core.orbit import leader_kinematics
+from . import estimators, relnav
+
+Array = NDArray[np.float64]
+COMPILED_KINDS = ("ekf", "iekf")  # filter types whose predict/update have compiled kernels
+
+
+@functools.lru_cache(maxsize=4096)
+def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Array, Array]:
+    """``(r_L, nu', nu'')`` at ``t + i h / 2``, ``i < stages``: the same for every trial, chunk and filter of a
+    step, so computed once (``leader_kinematics`` is a Kepler solve in numpy on a few scalars)."""
+    lk = leader_kinematics(orbit, t + 0.5 * h * np.arange(stages))
+    return tuple(np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
+
+
+def _q_batch(Q: Array, B: int, n: int) -> Array:
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
+
+
+def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None) -> Array:
+    """``Phi[:, 0:13, c]`` (``B, 13, 15``) at the posterior ``x`` (the rest of ``Phi`` is the identity).
+
+    ``lk``: the leader's ``(r, nu_dot, nu_ddot)`` at ``t`` when the caller has them.
+    """
+    if lk is None:
+        lk = tuple(float(v[0]) for v in _leader(setup.orbit, float(t)))
+    Fr = km.F_reduced_batch(x, lk[0], lk[1], lk[2], setup.orbit.mu)
+    if fs.transition == "expm":
+        from scipy.linalg import expm
+
+        A = np.zeros(Fr.shape[:-2] + (15, 15))
+        A[:, :13] = Fr * setup.dt
+        return np.ascontiguousarray(expm(A)[:, :13])
+    return km.transition_reduced_batch(Fr, setup.dt, fs.taylor_order)
+
+
+def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
+    """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
+    if fs.kind not in COMPILED_KINDS:  # other filter types (MEKF, UKF) keep their own (numpy) step
+        return estimators.predict(x, P, t, fs, setup)
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    B, n = x.shape
+    h = setup.dt / fs.substeps
+    # the leader once for all the RK4 stage times; the first is t, where F is evaluated
+    r, nd, ndd = _leader(setup.orbit, float(t), h, 2 * fs.substeps + 1)
+    T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
+    x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
+    return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
+
+
+def measurement_model(setup: Setup, step: relnav.StepMeasurement):
+    """``relnav.measurement_model`` on the compiled ``h``/``H`` (dense ``H`` for ``core.kalman``)."""
+    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
+    vis = np.flatnonzero(step.visible).astype(np.int64)
+    C = 9 if setup.disparity else 8
+    alpha_all = np.ascontiguousarray(step.alpha, dtype=float)
+    cols_cache: dict[int, Array] = {}
+
+    def measure(x: Array, rows: Array, jac: bool = True):
+        x = np.ascontiguousarray(x, dtype=float)
+        n = x.shape[-1]
+        a = alpha_all[rows] if setup.pseudo else np.zeros((x.shape[0], 3))
+        hx, Hval = km.measure_batch(x, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
+                                    np.ascontiguousarray(a), nd, ndd, jac)  # fmt: skip
+        if not jac:
+            return hx, None
+        if n not in cols_cache:
+            cols_cache[n] = km.measurement_columns(n, vis, C, setup.pseudo)
+        return hx, km.dense(Hval, cols_cache[n], n)
+
+    return measure
+
+
+def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
+    """The measurement update of ``relnav.update``: compiled where ``supported``, else numpy."""
+    first = step.t <= setup.dt * (1 + 1e-9)
+    if supported(fs) and not (first and getattr(fs, "first_update", "ekf") == "iterated"):
+        return compiled_update(x, P, step, rows, fs, setup)
+    return estimators.update(x, P, step, rows, fs, setup)  # MEKF, UKF, LM step control, iterated first update
+
+
+def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
+    """``(b, m)`` rows that enter the update: the kept features' channels and the pseudo rows."""
+    mask = np.ones((b, m), bool)
+    if keep is not None:
+        mask[:, : keep.shape[-1] * C] = np.repeat(keep, C, axis=-1)
+    return mask
+
+
+def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
+    """``relnav.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
+
+    A trial whose Cholesky factorization fails (``S`` or ``P-`` not numerically positive
+    definite, as in a filter that is losing track) is updated by ``relnav.update``, so it
+    meets numpy's solvers and their errors exactly as with ``--kernels numpy``.
+    """
+    from ..core.kernels import update as ku
+    from . import gating
+
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    b, n = x.shape
+    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
+    vis = np.flatnonzero(step.visible).astype(np.int64)
+    nvis, C = vis.size, (9 if setup.disparity else 8)
+    y = np.ascontiguousarray(step.y[rows], dtype=float)
+    m = y.shape[-1]
+    R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(
+        fs, setup, nvis, None if step.alpha_var is None else step.alpha_var[rows]), (b, m)), dtype=float)  # fmt: skip
+    keep = None if step.feature_mask is None else step.feature_mask[rows]
+    rejected = np.zeros(b, int)
+    if fs.gate_probability is not None and nvis:
+        hx, H = measurement_model(setup, step)(x, rows, jac=True)
+        d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
+        keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
+    used = np.full(b, nvis) if keep is None else keep.sum(axis=-1)
+    mask = _row_mask(keep, b, m, C)
+    alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
+    cols = km.measurement_columns(n, vis, C, setup.pseudo)
+    args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
+            nd, ndd, cols)  # fmt: skip
+    if fs.kind == "ekf":
+        xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
+        its, conv = np.ones(b, int), np.ones(b, bool)
+    else:
+        xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(
+            *args, fs.tolerance, fs.max_iterations, ku.CONTROL[fs.step_control], ku.STOPPING[fs.stopping], 10)
+    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
+    if not ok.all():  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
+        u = _patch(u, ~ok, relnav.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
+    return u
+
+
+def _patch(u, bad: Array, v):
+    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields)."""
+    import dataclasses
+
+    out = {}
+    for f in dataclasses.fields(u):
+        a = np.array(getattr(u, f.name), copy=True)
+        a[bad] = getattr(v, f.name)
+        out[f.name] = a
+    return type(u)(**out)
+
+
+def supported(fs: FilterSetup) -> bool:
+    """Filters the compiled update covers (others run ``relnav.update``): EKF, IEKF with line search or none."""
+    from ..core.kernels import update as ku
+
+    return fs.kind == "ekf" or (fs.kind == "iekf" and fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)

@@ -1,0 +1,127 @@
+"""Compiled model kernels (core/kernels/model.py) against their numpy twins and finite differences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stereopose_mc.core import camera, dynamics, inertia, jacobians, kalman, state as st
+from stereopose_mc.core.kernels import model as km
+from stereopose_mc.core.orbit import MU_EARTH
+
+RL, ND, NDD = 6.9e6, 1.1e-3, 2.0e-9  # an eccentric leader's r_L, nu', nu''
+
+
+def states(B=5, N=5, seed=0):
+    """Random but physical states: target ~30 m ahead (y > 0), rates ~0.01 rad/s, points ~2 m."""
+    rng = np.random.default_rng(seed)
+    x = np.empty((B, st.size(N)))
+    x[:, 0:3] = [3.0, 30.0, -2.0] + rng.normal(size=(B, 3))
+    x[:, 3:6] = 0.01 * rng.normal(size=(B, 3))
+    x[:, 6:9] = 0.02 * rng.normal(size=(B, 3))
+    x[:, 9:13] = rng.normal(size=(B, 4)) * 1.1  # not unit: D(q) normalizes
+    x[:, 13 : 13 + 3 * N] = 2.0 * rng.normal(size=(B, 3 * N))
+    x[:, -2:] = 0.3 * rng.normal(size=(B, 2))
+    return x
+
+
+def rel(a, b):
+    return np.max(np.abs(a - b)) / np.max(np.abs(b))
+
+
+def test_f_matches_numpy():
+    x = states()
+    assert rel(km.f_batch(x, RL, ND, NDD, MU_EARTH), dynamics.f(x, RL, ND, NDD, MU_EARTH)) < 1e-12
+
+
+def test_propagate_matches_numpy_rk4():
+    from stereopose_mc.core.orbit import Orbit, leader_kinematics
+
+    orbit = Orbit(a=7.0e6, e=0.05, i=0.9, raan=0.1, argp=0.2, nu0=0.3)
+    x = states()
+    for substeps in (1, 2):
+        h = 1.0 / substeps
+        lk = leader_kinematics(orbit, 5.0 + 0.5 * h * np.arange(2 * substeps + 1))
+        got = km.propagate_batch(x, lk.r, lk.nu_dot, lk.nu_ddot, h, orbit.mu, substeps, False)
+        want = dynamics.propagate(x, 5.0, 1.0, orbit, substeps)
+        assert rel(got, want) < 1e-13
+        normed = km.propagate_batch(x, lk.r, lk.nu_dot, lk.nu_ddot, h, orbit.mu, substeps, True)
+        assert np.allclose(np.linalg.norm(normed[:, st.QUAT], axis=-1), 1.0, rtol=0, atol=1e-15)
+
+
+def test_F_matches_numpy_and_finite_differences():
+    x = states()
+    F = km.F_batch(x, RL, ND, NDD, MU_EARTH)
+    assert rel(F, jacobians.F(x, RL, ND, NDD, MU_EARTH)) < 1e-12
+    n = x.shape[-1]
+    eps = 1e-6 * np.maximum(np.abs(x[0]), 1e-2)
+    fd = np.empty((n, n))
+    for j in range(n):
+        d = np.zeros(n)
+        d[j] = eps[j]
+        fd[:, j] = (km.f_batch((x[0] + d)[None], RL, ND, NDD, MU_EARTH)[0]
+                    - km.f_batch((x[0] - d)[None], RL, ND, NDD, MU_EARTH)[0]) / (2 * eps[j])  # fmt: skip
+    assert np.allclose(F[0], fd, rtol=1e-5, atol=1e-9 * np.max(np.abs(F[0])))
+    # the block structure the kernels rely on: only rows 0-12 and columns [0..12, k] are non-zero
+    mask = np.zeros((n, n), bool)
+    mask[:13, :13] = mask[:13, -2:] = True
+    assert np.all(F[:, ~mask] == 0.0) and np.all(jacobians.F(x, RL, ND, NDD, MU_EARTH)[:, ~mask] == 0.0)
+
+
+@pytest.mark.parametrize("order", [2, 4, 6])
+def test_transition_and_covariance_predict_match_dense(order):
+    x = states(B=4, N=7)
+    B, n = x.shape
+    Fd = jacobians.F(x, RL, ND, NDD, MU_EARTH)
+    T = km.transition_reduced_batch(km.F_reduced_batch(x, RL, ND, NDD, MU_EARTH), 1.0, order)
+    Phi = kalman.transition_matrix(Fd, 1.0, "taylor", order)
+    assert rel(km.dense_transition(T, n), Phi) < 1e-13
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(B, n, n))
+    P = A @ np.swapaxes(A, -1, -2) + n * np.eye(n)
+    Q = np.abs(rng.normal(size=(B, n)))
+    got = km.predict_covariance_batch(P, T, Q)
+    assert rel(got, kalman.predict_covariance(P, Phi, Q)) < 1e-13
+    assert np.array_equal(got, np.swapaxes(got, -1, -2))
+
+
+@pytest.mark.parametrize("disparity,pseudo,focal", [(False, True, 1.0), (True, True, 800.0), (False, False, 1.0)])
+def test_measurement_matches_numpy(disparity, pseudo, focal):
+    x = states(N=6)
+    B, n = x.shape
+    vis = np.array([0, 2, 3, 5])
+    alpha = 1e-5 * np.random.default_rng(2).normal(size=(B, 3))
+    hx, Hval = km.measure_batch(x, vis, 0.7, disparity, focal, pseudo, alpha, ND, NDD, True)
+    C = 9 if disparity else 8
+    h_np = [camera.h_features(x, 0.7, disparity, focal)[:, vis].reshape(B, -1)]
+    H_np = [jacobians.H_features(x, 0.7, disparity, focal)[:, vis].reshape(B, -1, n)]
+    if pseudo:
+        h_np.append(inertia.h_pseudo(x, alpha, ND, NDD))
+        H_np.append(jacobians.H_pseudo(x, alpha, ND, NDD))
+    h_np, H_np = np.concatenate(h_np, -1), np.concatenate(H_np, -2)
+    assert np.max(np.abs(hx - h_np) / np.maximum(np.abs(h_np), 1e-300)) < 1e-12
+    H = km.dense(Hval, km.measurement_columns(n, vis, C, pseudo), n)
+    assert rel(H, H_np) < 1e-12
+    h_only, _ = km.measure_batch(x, vis, 0.7, disparity, focal, pseudo, alpha, ND, NDD, False)
+    assert np.array_equal(h_only, hx)
+
+
+def test_measurement_jacobian_finite_differences():
+    x = states(B=1, N=4)
+    n = x.shape[-1]
+    vis = np.arange(4)
+    alpha = np.array([[1e-5, -2e-5, 3e-6]])
+
+    def h(v):
+        return km.measure_batch(v[None], vis, 0.5, True, 1.0, True, alpha, ND, NDD, False)[0][0]
+
+    _, Hval = km.measure_batch(x, vis, 0.5, True, 1.0, True, alpha, ND, NDD, True)
+    H = km.dense(Hval, km.measurement_columns(n, vis, 9, True), n)[0]
+    fd = np.empty_like(H)
+    for j in range(n):
+        e = 1e-6 * max(abs(x[0, j]), 1e-2)
+        d = np.zeros(n)
+        d[j] = e
+        fd[:, j] = (h(x[0] + d) - h(x[0] - d)) / (2 * e)
+    scale = np.max(np.abs(H), axis=1, keepdims=True)
+    assert np.all(np.abs(H - fd) <= 1e-6 * scale)

@@ -1,0 +1,73 @@
+"""``--kernels compiled``: whole trials agree with the numpy reference; threads, jobs and chunk sizes
+give the same bytes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from stereopose_mc.cli.main import app
+from stereopose_mc.mc import engine
+
+from scenarios import write_scenario
+
+runner = CliRunner()
+SHORT = {"dt_s": 1.0, "duration_s": 20.0, "error_window_start_s": 5.0}
+
+
+def run_ok(*args):
+    r = runner.invoke(app, [str(a) for a in args] + ["--quiet", "--no-report"])
+    assert r.exit_code == 0, r.output
+    return r
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return write_scenario(tmp_path_factory.mktemp("scn") / "s.yaml", trials=8, time=SHORT)
+
+
+@pytest.fixture(scope="module")
+def compiled_ref(scenario, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", 1, "--chunk-size", 8, "--kernels", "compiled")
+    return out
+
+
+def same_bytes(a: Path, b: Path):
+    for n in ("trials.parquet", "timeseries.parquet", "percentiles.csv"):
+        assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
+@pytest.mark.parametrize("jobs,chunk,backend", [(2, 3, "auto"), (2, 5, "loky"), (1, 1, "auto")])
+def test_compiled_same_bytes_for_any_jobs_chunk_and_backend(scenario, compiled_ref, tmp_path, jobs, chunk, backend):
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", jobs, "--chunk-size", chunk, "--kernels", "compiled",
+           "--backend", backend)  # fmt: skip
+    same_bytes(compiled_ref, out)
+
+
+def test_auto_backend_picks_threads_for_compiled_and_inline_for_one_chunk():
+    opts = engine.RunOptions(jobs=2, backend="auto", kernels="compiled")
+    assert engine.local_backend(opts, 4) == "threading"
+    assert engine.local_backend(opts, 1) == "inline"
+    assert engine.local_backend(engine.RunOptions(jobs=2, backend="auto"), 4) == "loky"
+    assert engine.local_backend(engine.RunOptions(jobs=1, backend="loky"), 4) == "inline"
+
+
+def test_bad_kernels_is_one_line_exit_2(scenario, tmp_path):
+    r = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "x"), "--kernels", "fortran", "--quiet"])
+    assert r.exit_code == 2 and "--kernels" in r.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_resume_keeps_the_runs_kernels(scenario, compiled_ref, tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--trials", 3, "--kernels", "compiled")
+    run_ok("run", "--resume", out, "--trials", 8)  # no --kernels: the run's own
+    assert json.loads((out / "manifest.json").read_text())["backend"]["kernels"] == "compiled"
+    same_bytes(compiled_ref, out)
