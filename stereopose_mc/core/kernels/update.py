@@ -35,6 +35,15 @@ CONTROL = {"none": 0, "line_search": 1}
 
 
 @njit(**_JIT)
+def _mirror_lower(A):
+    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            A[j, i] = A[i, j]
+
+
+@njit(**_JIT)
 def _cholesky(A, L):
     """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
 
@@ -170,9 +179,7 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
                 if c != 0.0:
                     for j in range(i + 1):
                         Pb[i, j] -= c * Z[r, j]
-        for i in range(n):
-            for j in range(i):
-                Pb[j, i] = Pb[i, j]
+        _mirror_lower(Pb)
         nis[b] = v
         _normalize_q(xo[b])
     return xo, Po, nu, nis, ok
@@ -212,9 +219,7 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
             if a != 0.0:
                 for j in range(i + 1):
                     A[i, j] += a * Hw[r, j]
-    for i in range(n):
-        for j in range(i):
-            A[j, i] = A[i, j]
+    _mirror_lower(A)
 
 
 @njit(**_JIT)
@@ -273,9 +278,7 @@ def _posterior_covariance(L, LA, out, X):
             if a != 0.0:
                 for j in range(i + 1):
                     out[i, j] += a * X[k, j]
-    for i in range(n):
-        for j in range(i):
-            out[j, i] = out[i, j]
+    _mirror_lower(out)
 
 
 @njit(**_JIT)
