@@ -219,6 +219,12 @@ class Prepared:
                 return fs
         raise ValueError(f"no filter of type {kind!r}")
 
+    def full_state_filter(self, kind: str):
+        """The filter of type ``kind`` with ``error_state: full``: the step the compiled kernels cover."""
+        import dataclasses
+
+        return dataclasses.replace(self.filter(kind), error_state="full")
+
 
 def prepare(d: dict) -> Prepared:
     """Validate scenario dict ``d``; its setup, truth, exact measurements, filters and bounds.

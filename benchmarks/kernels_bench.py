@@ -146,7 +146,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     K = s.steps
     k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
     for kind in cfg.filters:
-        fs = prep.filter(kind)
+        fs = prep.full_state_filter(kind)
         path = None
         for j in range(cfg.latency_candidates):
             posts, stp, iters, ok = _single_trial_path(prep, fs, j)
@@ -208,7 +208,7 @@ def _features(cfg: BenchConfig) -> list[Row]:
         cost: dict[str, dict[int, float]] = {k: {} for k in KERNELS}
         for N in cfg.feature_points:
             prep = prepare(scaling_scenario(cfg, kind, N))
-            fs, s = prep.filters[0], prep.setup
+            fs, s = prep.full_state_filter(kind), prep.setup
             from .sections import _draws
             from stereopose_mc.filters import relnav
 
@@ -244,7 +244,7 @@ def _filterpy(cfg: BenchConfig) -> list[Row]:
 
     prep = prepare(scenario_dict(cfg))
     s = prep.setup
-    fs = prep.filter("ekf")
+    fs = prep.full_state_filter("ekf")
     T = cfg.baseline_trials
     trials = np.arange(T)
     noisy, x0 = _draws(prep, trials)

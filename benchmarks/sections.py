@@ -284,7 +284,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
     N = s.n_points
     for kind in cfg.filters:
-        fs = prep.filter(kind)
+        fs = prep.full_state_filter(kind)
         trial = None
         for j in range(cfg.latency_candidates):
             posts, steps, iters, ok = _single_trial_path(prep, fs, j)
@@ -335,7 +335,7 @@ def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             if not prep.exact.visible.all():
                 raise RuntimeError(f"scaling: with N={N} points on a {cfg.sphere_radius_m} m sphere some are not "
                                    "visible; the measurement size would vary")  # fmt: skip
-            fs, s = prep.filters[0], prep.setup
+            fs, s = prep.full_state_filter(kind), prep.setup
             noisy, x0 = _draws(prep, trials)
             log(f"scaling: {kind}, N={N}, batch {trials.size}, {s.steps} steps")
 
@@ -419,7 +419,7 @@ def baseline(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     rows: list[Row] = []
     prep = prepare(scenario_dict(cfg))
     s = prep.setup
-    fs = prep.filter("ekf")
+    fs = prep.full_state_filter("ekf")
     T = cfg.baseline_trials
     trials = np.arange(T)
     noisy, x0 = _draws(prep, trials)

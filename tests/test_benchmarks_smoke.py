@@ -134,7 +134,7 @@ def test_filterpy_step_equals_ours_from_the_same_inputs(cfg):
 
     prep = common.prepare(common.scenario_dict(cfg))
     # ours with the exact transition (the scenario's default is a Taylor series) to isolate the code
-    s, fs = prep.setup, dataclasses.replace(prep.filter("ekf"), transition="expm")
+    s, fs = prep.setup, dataclasses.replace(prep.full_state_filter("ekf"), transition="expm")
     noisy, x0 = sections._draws(prep, np.arange(1))
     P0 = np.diag(s.P0_diag)
     vis = prep.exact.visible[1]
@@ -170,7 +170,7 @@ def test_filterpy_run_tracks_ours(cfg):
     from benchmarks.filterpy_baseline import run_trials
 
     prep = common.prepare(common.scenario_dict(cfg))
-    fs = prep.filter("ekf")
+    fs = prep.full_state_filter("ekf")  # FilterPy's EKF is the full-state (additive) one
     noisy, x0 = sections._draws(prep, np.arange(2))
     b = run_trials(x0, noisy.y, noisy.alpha, prep.exact.visible, prep.truth, prep.setup, fs)
     o = run_filter(x0, prep.setup, prep.truth, noisy.y, noisy.alpha, prep.exact.visible, fs, prep.bounds)

@@ -15,7 +15,8 @@ from scenarios import write_scenario
 
 runner = CliRunner()
 
-# case B with a tenth of its initial covariance (the default Q then gives a consistent IEKF), short
+# case B with a tenth of its initial covariance, short, and the thesis's full-state IEKF: the aligned error state
+# (the default) stays consistent even with Q x 1e-4 here, the full-state filter needs its Q
 MEDIUM_P0 = {"rho_m2": 0.1, "rho_dot_m2ps2": 1e-3, "omega_deg2ps2": 0.1, "q": 1e-6, "feature_points_m2": 0.1, "k": 0.1}
 MISTUNED = {k: 1e-4 * v for k, v in ProcessNoiseConfig().model_dump().items()}
 
@@ -24,7 +25,7 @@ MISTUNED = {k: 1e-4 * v for k, v in ProcessNoiseConfig().model_dump().items()}
 def mistuned(tmp_path_factory):
     return write_scenario(tmp_path_factory.mktemp("tune") / "mistuned.yaml", name="mistuned", initial_covariance=MEDIUM_P0,
                           time={"dt_s": 1.0, "duration_s": 25.0, "error_window_start_s": 8.0},
-                          filters=[{"type": "iekf", "process_noise": MISTUNED}])  # fmt: skip
+                          filters=[{"type": "iekf", "error_state": "full", "process_noise": MISTUNED}])  # fmt: skip
 
 
 @pytest.mark.slow
@@ -42,7 +43,7 @@ def test_tune_turns_a_mistuned_filter_consistent(mistuned, tmp_path):
     before = tuning.tune(scn, "iekf", trials=6, max_evaluations=1).before
     tuned = load_scenario(mistuned, {"filters": [entry]})
     after = tuning.tune(tuned, "iekf", trials=6, max_evaluations=1).before
-    assert before.nees["nees_gauge"] > 3.0, before.nees
+    assert max(before.nees.values()) > 3.0, before.nees
     assert all(v < 2.0 for v in after.nees.values()), after.nees
     assert 0.8 < after.nis < 1.2
 

@@ -164,6 +164,7 @@ class FilterSetup:
     ukf_alpha: float = 0.5  # UKF sigma-point scaling (Merwe): alpha, beta, kappa
     ukf_beta: float = 2.0
     ukf_kappa: float = 0.0
+    error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
 
 
 def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup) -> FilterSetup:
@@ -197,5 +198,6 @@ def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup
         taylor_order=f.taylor_order,
         substeps=f.integration_substeps,
         gate_probability=None if f.gating is None else f.gating.probability,
+        error_state=f.error_state,
         **extra,
     )

@@ -303,11 +303,11 @@ class FilterMeasurementNoise(_Model):
 class ProcessNoiseConfig(_Model):
     """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
 
-    rho_m2: NonNeg = 1e-5
+    rho_m2: NonNeg = 1e-8
     rho_dot_m2ps2: NonNeg = 1e-12
     omega_deg2ps2: NonNeg = 1e-10
     q: NonNeg = 3e-11
-    feature_points_m2: NonNeg = 3e-9
+    feature_points_m2: NonNeg = 3e-10
     k: NonNeg = 1e-10
 
 
@@ -337,8 +337,17 @@ class _FilterBase(_Model):
         return self.name or self.type  # type: ignore[attr-defined]
 
 
+_ERROR_STATE_DOC = (
+    "the coordinates the filter's covariance and iterations live in (docs/filters.md, Error state): 'aligned' "
+    "(centroid of the points in L, body-frame rotation, points in the rotated body frame: the near-symmetries are "
+    "straight lines, so the filter stays consistent), 'attitude' (3-parameter attitude error in L, additive "
+    "elsewhere) or 'full' (the thesis: additive on the whole state, quaternion covariance)"
+)
+
+
 class EKFConfig(_FilterBase):
     type: Literal["ekf"]
+    error_state: Literal["aligned", "full", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
     first_update: Literal["ekf", "iterated"] = Field(
         default="ekf",
         description="'iterated': the first update (t = dt) runs the IEKF's iterations (line search, Mahalanobis "
@@ -357,12 +366,14 @@ class _GaussNewtonBase(_FilterBase):
 
 class IEKFConfig(_GaussNewtonBase):
     type: Literal["iekf"]
+    error_state: Literal["aligned", "full", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
 
 
 class MEKFConfig(_GaussNewtonBase):
     """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error."""
 
     type: Literal["mekf"]
+    error_state: Literal["aligned", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
     iterated: bool = Field(default=True, description="run the IEKF's Gauss-Newton iterations in the update")
 
 
@@ -370,6 +381,7 @@ class UKFConfig(_FilterBase):
     """Unscented filter with multiplicative attitude (docs/filters.md); scaled sigma points (Merwe)."""
 
     type: Literal["ukf"]
+    error_state: Literal["aligned", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
     alpha: Annotated[float, Field(gt=0, le=1)] = 0.5
     beta: NonNeg = 2.0
     kappa: float = 0.0
@@ -408,7 +420,7 @@ class DivergenceConfig(_Model):
         "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
     )
     nees_factor: Pos = Field(
-        default=1000.0,
+        default=10.0,
         description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
         "chi-square 99.9% bound over nis_window_steps steps",
     )

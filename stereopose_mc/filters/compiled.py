@@ -61,7 +61,7 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
     """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
-    if fs.kind not in COMPILED_KINDS:  # other filter types (MEKF, UKF) keep their own (numpy) step
+    if fs.kind not in COMPILED_KINDS or fs.error_state != "full":  # error-state filters keep their numpy step
         return estimators.predict(x, P, t, fs, setup)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
@@ -173,4 +173,6 @@ def supported(fs: FilterSetup) -> bool:
     """Filters the compiled update covers (others run ``relnav.update``): EKF, IEKF with line search or none."""
     from ..core.kernels import update as ku
 
+    if fs.error_state != "full":  # the compiled kernels carry the full-state covariance only
+        return False
     return fs.kind == "ekf" or (fs.kind == "iekf" and fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)

@@ -1,37 +1,41 @@
-"""Which prediction and update a filter entry uses (``FilterSetup.kind``).
+"""Which prediction and update a filter entry uses (``FilterSetup.kind`` and ``error_state``).
 
-``ekf`` and ``iekf`` carry the covariance of the full state (``filters/relnav.py``);
-``mekf`` and ``ukf`` that of the error state, ``n - 1`` (``filters/mekf.py``,
-``filters/ukf.py``).
+``ekf`` and ``iekf`` with ``error_state: full`` carry the covariance of the full state
+(``filters/relnav.py``); every other entry that of an error state, ``n - 1``: the MEKF,
+and the EKF/IEKF with ``error_state: aligned|attitude``, through ``filters/mekf.py``; the
+UKF through ``filters/ukf.py``.
 """
 
 from __future__ import annotations
 
 from . import mekf, relnav
 
-ERROR_STATE_KINDS = ("mekf", "ukf")
+
+def error_state(fs) -> bool:
+    """True when the filter's covariance is that of an error state (``n - 1``)."""
+    return fs.kind in ("mekf", "ukf") or fs.error_state != "full"
 
 
-def error_state(kind: str) -> bool:
-    """True when the filter's covariance is that of the error state."""
-    return kind in ERROR_STATE_KINDS
+def initial_covariance(x, P, fs):
+    """The filter's starting covariance from a full-state one (mapped to its error state when it has one)."""
+    return mekf.to_error_covariance(x, P, fs) if error_state(fs) else P
 
 
 def predict(x, P, t, fs, setup):
-    if fs.kind == "mekf":
-        return mekf.predict(x, P, t, fs, setup)
     if fs.kind == "ukf":
         from . import ukf
 
         return ukf.predict(x, P, t, fs, setup)
+    if error_state(fs):
+        return mekf.predict(x, P, t, fs, setup)
     return relnav.predict(x, P, t, fs, setup)
 
 
 def update(x, P, step, rows, fs, setup):
-    if fs.kind == "mekf":
-        return mekf.update(x, P, step, rows, fs, setup)
     if fs.kind == "ukf":
         from . import ukf
 
         return ukf.update(x, P, step, rows, fs, setup)
+    if error_state(fs):
+        return mekf.update(x, P, step, rows, fs, setup)
     return relnav.update(x, P, step, rows, fs, setup)

@@ -121,7 +121,17 @@ def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
 
 def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup) -> kf.Update:
     """The filter's measurement update (EKF or IEKF) at one step."""
-    measure = measurement_model(setup, step)
+    measure, R, y, rejected, used = gated_model(x, P, measurement_model(setup, step), step, rows, fs, setup)
+    u = kalman_update(x, P, y, measure, R, rows, fs, setup, step)
+    return GatedUpdate(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)
+
+
+def gated_model(x: Array, P: Array, measure, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
+    """``(measure, R, y, rejected, used)`` after the tracker's feature mask and the filter's gate.
+
+    ``measure(x, rows, jac)`` is the step's model in the filter's own coordinates (the full
+    state, or an error state with ``x`` its zero and ``P`` its covariance).
+    """
     R = measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
     y = step.y[rows]
     nvis = int(step.visible.sum())
@@ -135,11 +145,25 @@ def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSet
     if keep is not None:
         measure = gating.masked_measure(measure, step.y, rows, keep, C)
     used = np.full(rows.size, nvis) if keep is None else keep.sum(axis=-1)
-    if fs.kind == "ekf" and not (fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9)):
-        u = kf.ekf_update(x, P, y, measure, R, rows)
-    elif fs.kind == "ekf":  # first_update: iterated, with the IEKF's defaults
-        u = kf.iekf_update(x, P, y, measure, R, rows, tol=0.01, max_iter=10, step_control="line_search")
-    else:
-        u = kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
-                           step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip
-    return GatedUpdate(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)
+    return measure, R, y, rejected, used
+
+
+def iterated_at(fs: FilterSetup, setup: Setup, step: StepMeasurement) -> bool:
+    """True when this update runs the Gauss-Newton iterations.
+
+    The IEKF always; the MEKF when ``iterated``; the EKF and the UKF only at the first
+    update with ``first_update: iterated`` (then with the IEKF's defaults).
+    """
+    if fs.kind in ("ekf", "ukf"):
+        return fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9)
+    return fs.kind == "iekf" or fs.max_iterations > 1
+
+
+def kalman_update(x, P, y, measure, R, rows, fs: FilterSetup, setup: Setup, step: StepMeasurement) -> kf.Update:
+    """The EKF or iterated (Gauss-Newton) update of ``core.kalman`` that ``fs`` asks for at this step."""
+    if not iterated_at(fs, setup, step):
+        return kf.ekf_update(x, P, y, measure, R, rows)
+    if fs.kind in ("ekf", "ukf"):  # first_update: iterated, with the IEKF's defaults
+        return kf.iekf_update(x, P, y, measure, R, rows, tol=0.01, max_iter=10, step_control="line_search")
+    return kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
+                          step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip

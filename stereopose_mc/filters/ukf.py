@@ -11,12 +11,10 @@ entry.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from ..config.resolve import FilterSetup, Setup
-from ..core import dynamics, errorstate as es
+from ..core import dynamics
 from ..core import kalman as kf
 from ..core import unscented as ut
 from . import mekf, relnav
@@ -31,20 +29,21 @@ def predict(x, P, t, fs: FilterSetup, setup: Setup):
 
     # Q is mapped at the propagated centre point (the mean's chart differs from it by the mean increment)
     x_c = relnav.renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
-    return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
-                      chart=es.chart, local=es.local)  # fmt: skip
+    ch = mekf.chart_of(fs)
+    return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag, ch), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
+                      chart=ch.chart, local=ch.local)  # fmt: skip
 
 
 def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup) -> kf.Update:
-    if fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9):
-        it = dataclasses.replace(fs, max_iterations=10, tolerance=0.01, step_control="line_search", stopping="mahalanobis")
-        return mekf.update(x, P, step, rows, it, setup)
+    if relnav.iterated_at(fs, setup, step):  # first_update: iterated, the error-state filter's iterated update
+        return mekf.update(x, P, step, rows, fs, setup)
     measure = relnav.measurement_model(setup, step)
     R = relnav.measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
 
     def h(states, idx):
         return measure(states, rows[idx], jac=False)[0]
 
-    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa, chart=es.chart)
+    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
+                                      chart=mekf.chart_of(fs).chart)
     B = x.shape[0]
     return kf.Update(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool))

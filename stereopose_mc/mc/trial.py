@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
+from ..core import aligned
 from ..core import errorstate as es
 from ..core import quaternion as qt
 from ..core import state as st
@@ -175,11 +176,10 @@ def run_filter(
     reasons = [""] * B
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
-    if estimators.error_state(fs.kind):
-        P = es.to_error_covariance(x, P)
+    P = estimators.initial_covariance(x, P, fs)
     err[:, 0] = errors(x, true_state(truth.x, 0, np.arange(B)))
     parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
-    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)))
+    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -224,7 +224,7 @@ def run_filter(
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
-                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active))
+                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active), fs.error_state)
             except np.linalg.LinAlgError:
                 pass
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
@@ -316,19 +316,27 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
                  for f in dataclasses.fields(cls))), r1 + r2  # fmt: skip
 
 
-def nees_of(x: Array, P: Array, x_true: Array) -> dict[str, Array]:
+def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> dict[str, Array]:
     """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
     ``P`` is the covariance of the full state ``(B, n, n)`` (mapped to the error state at
-    the estimate) or already of the error state ``(B, n-1, n-1)`` (MEKF, UKF).
+    the estimate) or of the filter's error state ``(B, n-1, n-1)``: the attitude chart's
+    (MEKF, UKF), or the aligned chart's (``error_state: aligned``, mapped to the attitude
+    chart, in which every NEES is reported).
     """
     with np.errstate(all="ignore"):
-        P_eps = es.to_error_covariance(x, P) if P.shape[-1] == x.shape[-1] else P
-        return es.nees_all(es.estimation_error(x, x_true), P_eps, x)
+        if P.shape[-1] == x.shape[-1]:
+            P_eps = es.to_error_covariance(x, P)
+        elif error_state == "aligned":
+            P_eps = aligned.to_attitude_chart(x, P)
+        else:
+            P_eps = P
+        return es.nees_report(x, P_eps, x_true)
 
 
-def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array) -> None:
-    v = nees_of(x, P, x_true)
+def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
+                 error_state: str = "attitude") -> None:  # fmt: skip
+    v = nees_of(x, P, x_true, error_state)
     nees[rows, k] = v["nees"]
     for name, a in parts.items():
         a[rows, k] = v[name]

@@ -22,6 +22,8 @@ iteration counts, and to differ by no more than that numpy-vs-numpy round-off sp
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -39,7 +41,9 @@ def _prepared(case="caseB", **overrides):
     scn = load_scenario_text(yaml.safe_dump(scenario_dict(case, **overrides)))
     setup = setup_of(scn)
     truth = simulate_truth(setup)
-    return scn, setup, truth, meas.noise_free(setup, truth), [filter_setup_of(f, setup) for f in scn.filters]
+    # the full-state step: the one the compiled kernels compute (error_state: full)
+    fss = [dataclasses.replace(filter_setup_of(f, setup), error_state="full") for f in scn.filters]
+    return scn, setup, truth, meas.noise_free(setup, truth), fss
 
 
 class _Both:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
@@ -49,15 +51,24 @@ def test_gauge_nees_must_stay_above_the_bound_for_the_whole_window():
 
 
 @pytest.mark.slow
-def test_case_b_trial_758_is_not_counted_as_converged():
-    """Trial 758 of case B (k2 error about 6.4 at the end, counted as converged before issue 10)."""
+def test_case_b_trial_758_is_converged_only_where_its_error_became_small():
+    """Trial 758 of case B (k2 error about 6.4 at the end with the thesis's filter, counted as converged before issue 10).
+
+    The thesis's full-state IEKF keeps a k2 error of ~6.9: marked ``inconsistent``. The
+    default (aligned error state) IEKF brings it down to < 0.05 (its transient peak was ~2):
+    converged, and rightly so.
+    """
     scn = load_scenario(config_path("B"))
     pr = engine.prepare(scn)
-    res = run_chunk(scn.seed, np.array([758]), pr.setup, pr.truth, pr.exact, pr.filters[:1], pr.bounds)
-    r = res.runs[0]
-    assert r.diverged_step[0] > 0, "trial 758 must be marked"
-    assert r.diverged_reason[0].startswith("inconsistent")
-    assert np.nanmax(r.errors[0, :, 5]) > 1.0  # its k2 error was indeed large
+    full = dataclasses.replace(pr.filters[0], error_state="full", label="full")
+    res = run_chunk(scn.seed, np.array([758]), pr.setup, pr.truth, pr.exact, [pr.filters[0], full], pr.bounds)
+    aligned, thesis = res.runs
+    assert thesis.diverged_step[0] > 0, "trial 758 must be marked with the full-state IEKF"
+    assert thesis.diverged_reason[0].startswith("inconsistent")
+    assert np.nanmax(thesis.errors[0, :, 5]) > 1.0  # its k2 error was indeed large
+    assert aligned.diverged_step[0] < 0
+    assert np.nanmax(aligned.errors[0, :, 5]) > 1.0  # the same wide start
+    assert np.abs(aligned.errors[0, -10:, 4:6]).max() < 0.05  # ... and a small final error
 
 
 def test_ekf_iterated_first_update_equals_the_iekf_at_the_first_step_only():

@@ -1,0 +1,205 @@
+"""The aligned error state: coordinates in which the problem's near-symmetries are straight lines.
+
+Two families of states give the same images at every instant (docs/filters.md, "The
+aligned error state"):
+
+- the **centre-of-mass gauge**: ``P_i + d`` for every point with ``rho - D d`` and
+  ``rho_dot - omega x (D d)`` (broken only by the centre of mass's orbital dynamics);
+- the **body-frame rotation**: ``q (x) dq`` with ``P_i -> R(dq)^T P_i`` (broken only by
+  Euler's equations through the principal axes, which 100 s of a slow tumble barely see).
+
+In the attitude chart of ``core.errorstate`` (``a`` in ``L``, additive points and centre
+of mass) both are curves whose tangent depends on the estimate (``[P_i x]``, ``D``), so a
+filter linearized at moving estimates gains information along them that no image holds:
+the attitude becomes 2x overconfident in case B. The aligned error state
+
+    e = [e_c (3), e_cdot (3), e_omega (3), delta (3), e_P1 ... e_PN (3N), e_k (2)]
+
+with ``c = rho + D P_bar`` the centroid of the feature points in ``L`` (``P_bar`` their mean
+in ``T``), ``c_dot = rho_dot + omega x (D P_bar)`` its velocity, ``delta`` a rotation of the
+body frame (``q = q_ref (x) dq(delta)``, ``dq`` the chart of ``core.errorstate``) and the
+points in the rotated body frame, ``P_i = R(delta)^T (P_i,ref + e_Pi)``:
+
+    chart(x_ref, e):  q = q_ref (x) dq(delta),   P_i = R^T (P_i,ref + e_Pi),
+                      omega = omega_ref + e_omega,   k = k_ref + e_k,
+                      v = D_ref (P_bar,ref + mean e_P)   (= D P_bar),
+                      rho = c_ref + e_c - v,   rho_dot = c_dot,ref + e_cdot - omega x v.
+
+A pure ``delta`` is exactly the body-frame rotation and a common ``e_Pi = d`` (with
+``e_c = e_cdot = 0``) exactly the gauge, at any reference and any size; every feature's
+position ``c + D_ref (P_i,ref + e_Pi - P_bar,ref - mean e_P)`` and velocity in ``L``
+depend neither on ``delta`` nor on the common part of ``e_P``. ``local`` is the exact
+inverse of ``chart``; ``chart_jacobian`` and ``error_map`` are analytic (tests: finite
+differences, ``T S = I``). Batched over leading axes; unit quaternions, SI units.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import errorstate as es
+from . import quaternion as qt
+from . import state as st
+from .jacobians import dcm_derivative
+
+Array = NDArray[np.float64]
+
+DELTA = slice(9, 12)  # the body-frame rotation block of the aligned error state
+
+
+def left_matrix(p: Array) -> Array:
+    """``L(p)`` (``...,4,4``) with ``p (x) r = L(p) r``."""
+    p0, p1, p2, p3 = np.moveaxis(np.asarray(p, dtype=float), -1, 0)
+    return np.stack(
+        [
+            np.stack([p0, -p1, -p2, -p3], -1),
+            np.stack([p1, p0, -p3, p2], -1),
+            np.stack([p2, p3, p0, -p1], -1),
+            np.stack([p3, -p2, p1, p0], -1),
+        ],
+        axis=-2,
+    )
+
+
+def _points(x: Array) -> Array:
+    """The feature points ``(..., N, 3)`` of states ``x``."""
+    N = st.n_points(x.shape[-1])
+    return x[..., 13 : 13 + 3 * N].reshape(x.shape[:-1] + (N, 3))
+
+
+def centroid(x: Array) -> tuple[Array, Array, Array]:
+    """``(c, c_dot, v)``: the points' centroid in ``L``, its velocity, and ``v = D P_bar``."""
+    v = qt.matvec(qt.dcm(x[..., st.QUAT]), _points(x).mean(axis=-2))
+    return x[..., st.RHO] + v, x[..., st.RHO_DOT] + qt.cross(x[..., st.OMEGA], v), v
+
+
+def chart(x_ref: Array, e: Array) -> Array:
+    """``x_ref [+] e`` in the aligned chart (module docstring)."""
+    N = st.n_points(x_ref.shape[-1])
+    shape = np.broadcast_shapes(x_ref.shape[:-1], e.shape[:-1])
+    x_ref = np.broadcast_to(x_ref, shape + x_ref.shape[-1:])
+    e = np.broadcast_to(e, shape + e.shape[-1:])
+    x = np.empty(shape + (e.shape[-1] + 1,))
+    c_ref, cd_ref, _ = centroid(x_ref)
+    dq = es.small_quaternion(e[..., DELTA])
+    x[..., st.QUAT] = qt.multiply(x_ref[..., st.QUAT], dq)
+    u = _points(x_ref) + e[..., 12 : 12 + 3 * N].reshape(shape + (N, 3))
+    x[..., 13 : 13 + 3 * N] = (u @ qt.dcm(dq)).reshape(shape + (3 * N,))  # rows u_i^T R = (R^T u_i)^T
+    x[..., st.OMEGA] = x_ref[..., st.OMEGA] + e[..., st.OMEGA]
+    x[..., 13 + 3 * N :] = x_ref[..., 13 + 3 * N :] + e[..., 12 + 3 * N :]
+    v = qt.matvec(qt.dcm(x_ref[..., st.QUAT]), u.mean(axis=-2))
+    x[..., st.RHO] = c_ref + e[..., st.RHO] - v
+    x[..., st.RHO_DOT] = cd_ref + e[..., st.RHO_DOT] - qt.cross(x[..., st.OMEGA], v)
+    return x
+
+
+def local(x_ref: Array, x: Array) -> Array:
+    """Inverse of ``chart``: ``e`` with ``x = x_ref [+] e``."""
+    N = st.n_points(x.shape[-1])
+    shape = np.broadcast_shapes(x_ref.shape[:-1], x.shape[:-1])
+    x_ref = np.broadcast_to(x_ref, shape + x_ref.shape[-1:])
+    x = np.broadcast_to(x, shape + x.shape[-1:])
+    e = np.empty(shape + (x.shape[-1] - 1,))
+    dq = qt.multiply(qt.conjugate(qt.normalize(x_ref[..., st.QUAT])), x[..., st.QUAT])
+    dq = dq / np.linalg.norm(x[..., st.QUAT], axis=-1, keepdims=True)
+    e[..., DELTA] = 2.0 * dq[..., 1:] / dq[..., :1]
+    R = qt.dcm(dq)
+    P = _points(x)
+    e[..., 12 : 12 + 3 * N] = (P @ np.swapaxes(R, -1, -2) - _points(x_ref)).reshape(shape + (3 * N,))
+    e[..., st.OMEGA] = x[..., st.OMEGA] - x_ref[..., st.OMEGA]
+    e[..., 12 + 3 * N :] = x[..., 13 + 3 * N :] - x_ref[..., 13 + 3 * N :]
+    c_ref, cd_ref, _ = centroid(x_ref)
+    c, cd, _ = centroid(x)
+    e[..., st.RHO] = c - c_ref
+    e[..., st.RHO_DOT] = cd - cd_ref
+    return e
+
+
+def chart_jacobian(x_ref: Array, e: Array | None = None) -> Array:
+    """``S = d (x_ref [+] e) / d e`` (``..., n, n-1``); at ``e = 0`` by default.
+
+    ``dq/d delta = L(q_ref) d dq/d delta``; ``dP_i/de_Pi = R^T``,
+    ``dP_i/d delta = [dR^T/d dq_j u_i]_j d dq/d delta``; ``d rho/d e_c = I``,
+    ``d rho/d e_Pi = -D_ref / N``; ``d rho_dot/d e_cdot = I``, ``d rho_dot/d e_omega = [v x]``,
+    ``d rho_dot/d e_Pi = -[omega x] D_ref / N``; identity on ``omega`` and ``k``.
+    """
+    n = x_ref.shape[-1]
+    N = st.n_points(n)
+    if e is None:
+        e = np.zeros(x_ref.shape[:-1] + (n - 1,))
+    shape = np.broadcast_shapes(x_ref.shape[:-1], e.shape[:-1])
+    x_ref = np.broadcast_to(x_ref, shape + (n,))
+    e = np.broadcast_to(e, shape + (n - 1,))
+    S = np.zeros(shape + (n, n - 1))
+    delta = e[..., DELTA]
+    dq = es.small_quaternion(delta)
+    Sq = es.small_quaternion_jacobian(delta)  # (..., 4, 3)
+    S[..., st.QUAT, DELTA] = left_matrix(x_ref[..., st.QUAT]) @ Sq
+    R, dR = dcm_derivative(dq)  # dR[..., j] = dR/d dq_j
+    u = _points(x_ref) + e[..., 12 : 12 + 3 * N].reshape(shape + (N, 3))
+    Rt = np.swapaxes(R, -1, -2)
+    D_ref = qt.dcm(x_ref[..., st.QUAT])
+    omega = x_ref[..., st.OMEGA] + e[..., st.OMEGA]
+    v = qt.matvec(D_ref, u.mean(axis=-2))
+    W = qt.skew(omega) @ D_ref / N
+    for i in range(N):
+        r, c = slice(13 + 3 * i, 16 + 3 * i), slice(12 + 3 * i, 15 + 3 * i)
+        S[..., r, c] = Rt
+        # d (R^T u) / d dq_j = dR_j^T u: columns j of a 3 x 4 matrix
+        dRtu = np.einsum("...jba,...b->...aj", dR, u[..., i, :])
+        S[..., r, DELTA] = dRtu @ Sq
+        S[..., st.RHO, c] = -D_ref / N
+        S[..., st.RHO_DOT, c] = -W
+    S[..., st.RHO, st.RHO] = np.eye(3)
+    S[..., st.RHO_DOT, st.RHO_DOT] = np.eye(3)
+    S[..., st.RHO_DOT, st.OMEGA] = qt.skew(v)
+    S[..., st.OMEGA, st.OMEGA] = np.eye(3)
+    S[..., 13 + 3 * N :, 12 + 3 * N :] = np.eye(2)
+    return S
+
+
+def error_map(x_ref: Array) -> Array:
+    """``T = d e / d x`` at ``x_ref`` (``..., n-1, n``); ``T S = I`` and ``T q_ref = 0`` (no norm direction).
+
+    ``d delta/dq = Xi_b = 2 [L(q_ref^*)]_vec``; ``d e_Pi/dP_i = I``, ``d e_Pi/dq = -[P_i x] Xi_b``;
+    ``d e_c/d rho = I``, ``d e_c/dP_i = D/N``, ``d e_c/dq = [dD/dq_j P_bar]_j``;
+    ``d e_cdot/d rho_dot = I``, ``d e_cdot/d omega = -[v x]``, ``d e_cdot/dP_i = [omega x] D/N``,
+    ``d e_cdot/dq = [omega x] [dD/dq_j P_bar]_j``; identity on ``omega`` and ``k``.
+    """
+    n = x_ref.shape[-1]
+    N = st.n_points(n)
+    T = np.zeros(x_ref.shape[:-1] + (n - 1, n))
+    qn = qt.normalize(x_ref[..., st.QUAT])
+    Xi = 2.0 * left_matrix(qt.conjugate(qn))[..., 1:, :]
+    D, dD = dcm_derivative(x_ref[..., st.QUAT])
+    P = _points(x_ref)
+    Pbar = P.mean(axis=-2)
+    v = qt.matvec(D, Pbar)
+    dv = np.einsum("...jab,...b->...aj", dD, Pbar)  # (..., 3, 4): d (D P_bar) / dq
+    Om = qt.skew(x_ref[..., st.OMEGA])
+    T[..., DELTA, st.QUAT] = Xi
+    for i in range(N):
+        r, c = slice(12 + 3 * i, 15 + 3 * i), slice(13 + 3 * i, 16 + 3 * i)
+        T[..., r, c] = np.eye(3)
+        T[..., r, st.QUAT] = -qt.skew(P[..., i, :]) @ Xi
+        T[..., st.RHO, c] = D / N
+        T[..., st.RHO_DOT, c] = Om @ D / N
+    T[..., st.RHO, st.RHO] = np.eye(3)
+    T[..., st.RHO, st.QUAT] = dv
+    T[..., st.RHO_DOT, st.RHO_DOT] = np.eye(3)
+    T[..., st.RHO_DOT, st.OMEGA] = -qt.skew(v)
+    T[..., st.RHO_DOT, st.QUAT] = Om @ dv
+    T[..., st.OMEGA, st.OMEGA] = np.eye(3)
+    T[..., 12 + 3 * N :, 13 + 3 * N :] = np.eye(2)
+    return T
+
+
+def to_attitude_chart(x: Array, P: Array) -> Array:
+    """The covariance ``P`` of the aligned error state at ``x`` in the attitude chart of ``core.errorstate``.
+
+    ``M P M^T`` with ``M = T_attitude(x) S_aligned(x)`` (exact at first order: both are
+    charts of the same state around the same point).
+    """
+    M = es.error_map(x) @ chart_jacobian(x)
+    return M @ P @ np.swapaxes(M, -1, -2)
