@@ -257,6 +257,11 @@ def _nees(e: Array, P: Array) -> Array:
     return out
 
 
+def mahalanobis2(e: Array, P: Array) -> Array:
+    """``e^T P^-1 e`` (``...``) by Cholesky; NaN where ``P`` is not positive definite or ``e`` not finite."""
+    return _nees(e, P)
+
+
 def nees_all(eps: Array, P_eps: Array, x_ref: Array) -> dict[str, Array]:
     """Full, per-block and gauge-projected NEES (``...``) of errors ``eps`` with covariance ``P_eps``.
 

@@ -319,19 +319,36 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
 def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> dict[str, Array]:
     """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
+    Blocks and the gauge-projected NEES in the attitude chart (``core.errorstate``), the full
+    NEES in the aligned chart (``core.aligned.nees``): both ``n - 1`` dof, the same to first
+    order.
+
     ``P`` is the covariance of the full state ``(B, n, n)`` (mapped to the error state at
     the estimate) or of the filter's error state ``(B, n-1, n-1)``: the attitude chart's
     (MEKF, UKF), or the aligned chart's (``error_state: aligned``, mapped to the attitude
     chart, in which every NEES is reported).
     """
     with np.errstate(all="ignore"):
+        P_att = attitude_covariance(x, P, error_state)
+        out = es.nees_report(x, P_att, x_true)
         if P.shape[-1] == x.shape[-1]:
-            P_eps = es.to_error_covariance(x, P)
+            T = aligned.error_map(x)
+            P_al = T @ P @ np.swapaxes(T, -1, -2)
         elif error_state == "aligned":
-            P_eps = aligned.to_attitude_chart(x, P)
+            P_al = P
         else:
-            P_eps = P
-        return es.nees_report(x, P_eps, x_true)
+            P_al = aligned.from_attitude_chart(x, P_att)
+        out["nees"] = aligned.nees(x, P_al, x_true)  # the full NEES in the chart where the gauge is straight
+        return out
+
+
+def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Array:
+    """A filter's covariance ``P`` at ``x`` as that of the attitude-chart error state (``core.errorstate``)."""
+    if P.shape[-1] == x.shape[-1]:
+        return es.to_error_covariance(x, P)
+    if error_state == "aligned":
+        return aligned.to_attitude_chart(x, P)
+    return P
 
 
 def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
