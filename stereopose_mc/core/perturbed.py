@@ -32,7 +32,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.integrate import solve_ivp
 
 from . import quaternion as qt
 
@@ -147,6 +146,8 @@ def propagate(y0: Array, t: Array, J: Array, p: Perturbations, rtol: float = 1e-
 
     def f(_t, yy):
         return rhs(yy.reshape(B, N_STATE), J, p).reshape(-1)
+
+    from scipy.integrate import solve_ivp  # only perturbed truths need it here
 
     sol = solve_ivp(f, (t[0], t[-1]), y0.reshape(-1), method="DOP853", t_eval=t, rtol=rtol, atol=atol,
                     dense_output=dense)  # fmt: skip

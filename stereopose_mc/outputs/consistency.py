@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy.special import chdtri
 
 from ..core import errorstate as es
 
@@ -71,7 +71,7 @@ def _name(key: str) -> str:
 def nis_band(dof_mean: float, steps: int, level: float = 0.95) -> tuple[float, float]:
     """Two-sided band of a time average over ``steps`` steps of NIS/dof with ``dof_mean`` rows each."""
     d = max(1.0, dof_mean * steps)
-    lo, hi = stats.chi2.ppf([(1 - level) / 2, (1 + level) / 2], d) / d
+    lo, hi = chdtri(d, [(1 + level) / 2, (1 - level) / 2]) / d  # chi2.ppf([0.025, 0.975], d) / d
     return float(lo), float(hi)
 
 

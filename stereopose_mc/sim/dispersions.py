@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special, stats
+from scipy import special
 
 from ..config.dispersions import apply_values, component_names, get_path, invalid_reason, mode_of, MODEL_PREFIXES
 from ..config.schema import DispersionSpec, MagnitudeSpec, Scenario
@@ -77,7 +77,9 @@ def _scalar_ppf(spec, u: Array, shape: tuple[int, ...]) -> Array:
         return b("low") + (b("high") - b("low")) * u
     if spec.dist == "truncnormal":
         mean, std = b("mean"), np.maximum(b("std"), 1e-300)
-        return stats.truncnorm.ppf(u, (b("low") - mean) / std, (b("high") - mean) / std, loc=mean, scale=std)
+        from scipy.stats import truncnorm  # here: scipy.stats costs ~0.2 s of every run's start-up
+
+        return truncnorm.ppf(u, (b("low") - mean) / std, (b("high") - mean) / std, loc=mean, scale=std)
     if spec.dist == "lognormal":
         return b("median") * np.exp(b("sigma") * special.ndtri(u))
     raise ValueError(spec.dist)  # pragma: no cover
