@@ -213,12 +213,45 @@ def from_attitude_chart(x: Array, P: Array) -> Array:
     return 0.5 * (Pa + np.swapaxes(Pa, -1, -2))
 
 
-def nees(x_hat: Array, P: Array, x_true: Array) -> Array:
-    """NEES of the whole error state in the aligned chart: ``e^T P^-1 e``, ``e = local(x_hat, x_true)``.
+def gauge_complement(n: int) -> Array:
+    """Orthonormal ``V (n-1, n-4)``: the complement of the gauge in the aligned error state.
 
-    ``P`` is the covariance of the aligned error state at ``x_hat``. To first order the
-    NEES of the attitude chart; unlike it, an error along the centre-of-mass gauge or the
-    body-frame rotation does not leak, through their curvature, into the directions the
-    images measure to a fraction of a millimetre (docs/filters.md, Consistency).
+    In this chart the centre-of-mass gauge is exactly the constant direction "the same
+    ``e_Pi = d`` for every point" (``e_c``, ``e_cdot`` unchanged), whatever the reference and
+    the size of ``d``: moving the truth along its gauge orbit adds ``R d`` (``R`` the small
+    rotation between the two attitudes) to every ``e_Pi`` and nothing else.
     """
-    return es.mahalanobis2(local(x_hat, np.broadcast_to(x_true, x_hat.shape)), P)
+    N = st.n_points(n)
+    G = np.zeros((n - 1, 3))
+    G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1)) / np.sqrt(N)
+    Qf, _ = np.linalg.qr(G, mode="complete")
+    return Qf[:, 3:]
+
+
+def nees_report(x_hat: Array, P: Array, x_true: Array) -> dict[str, Array]:
+    """Full, gauge-projected and per-block NEES of the estimate ``(x_hat, P)`` (``P`` in the aligned chart).
+
+    - ``nees``: ``e^T P^-1 e`` with ``e = local(x_hat, x_true)`` (``n - 1`` dof);
+    - ``nees_gauge``: the same for ``V^T e`` with ``V^T P V`` (``gauge_complement``,
+      ``n - 4`` dof): exactly invariant to where the estimate sits on its gauge orbit;
+    - ``nees_<block>``: the blocks of the attitude-chart error state of
+      ``core.errorstate`` (``rho, rho_dot, omega, attitude, feature_points, k``: the
+      quantities a reader knows), its covariance ``M P M^T``, ``M = T_att S_aligned``.
+
+    To first order these are the NEES of ``core.errorstate.nees_all``; unlike those, an
+    error along the gauge or the body rotation does not leak, through their curvature in
+    the attitude chart, into the directions the images measure to a fraction of a
+    millimetre (docs/filters.md, Consistency).
+    """
+    x_true = np.broadcast_to(x_true, x_hat.shape)
+    n = x_hat.shape[-1]
+    e = local(x_hat, x_true)
+    out = {"nees": es.mahalanobis2(e, P)}
+    V = gauge_complement(n)
+    out["nees_gauge"] = es.mahalanobis2(e @ V, np.swapaxes(V, 0, 1) @ P @ V)
+    eps = es.estimation_error(x_hat, x_true)
+    M = es.error_map(x_hat) @ chart_jacobian(x_hat)
+    for name, b in es.error_blocks(st.n_points(n)).items():
+        Mb = M[..., b, :]
+        out[f"nees_{name}"] = es.mahalanobis2(eps[..., b], Mb @ P @ np.swapaxes(Mb, -1, -2))
+    return out

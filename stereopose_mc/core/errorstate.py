@@ -212,24 +212,6 @@ def gauge_act_jacobian(x: Array, d: Array) -> Array:
     return J
 
 
-def align_gauge(x_hat: Array, x_true: Array, iterations: int = 4) -> Array:
-    """The gauge move ``d (..., 3)`` that takes ``x_hat`` to the point of its gauge orbit nearest ``x_true``.
-
-    Nearest in the sense of the gauge projection: the error ``eps`` of ``gauge_act(x_hat, d)``
-    has no component along ``gauge_basis`` there (``G^T eps = 0``). Gauss-Newton from
-    ``d = 0``: ``d <- d - (G^T G)^-1 G^T eps`` (the orbit is a curve in ``eps`` only through
-    the attitude error, so a few iterations reach round-off).
-    """
-    d = np.zeros(np.broadcast_shapes(x_hat.shape, x_true.shape)[:-1] + (3,))
-    for _ in range(iterations):
-        xa = gauge_act(x_hat, d)
-        e = estimation_error(xa, x_true)
-        G = gauge_basis(xa)
-        Gt = np.swapaxes(G, -1, -2)
-        d = d - np.linalg.solve(Gt @ G, (Gt @ e[..., None]))[..., 0]
-    return d
-
-
 def gauge_complement(x: Array) -> Array:
     """Orthonormal basis ``V (..., n-1, n-4)`` of the complement of ``gauge_basis(x)``."""
     G = gauge_basis(x)
@@ -279,31 +261,3 @@ def _nees_projected(eps: Array, P_eps: Array, x_ref: Array) -> Array:
     V = gauge_complement(x_ref)
     z = (np.swapaxes(V, -1, -2) @ eps[..., None])[..., 0]
     return _nees(z, np.swapaxes(V, -1, -2) @ P_eps @ V)
-
-
-def nees_report(x_hat: Array, P_eps: Array, x_true: Array) -> dict[str, Array]:
-    """Full, per-block and gauge-projected NEES of the estimate ``(x_hat, P_eps)`` of ``x_true``.
-
-    The full and block NEES are those of ``nees_all`` (the estimate as it is). The
-    gauge-projected NEES first moves the estimate along its own exact gauge orbit to the
-    point nearest the truth (``align_gauge``), carrying its covariance with it
-    (``J P_eps J^T``, ``gauge_act_jacobian``), then projects as ``nees_all`` does. To first
-    order this is the same number; it differs when the error along the gauge is large
-    (tens of cm) together with an attitude error: the linear projection then leaves a
-    curvature term ``a x (D d)`` of a few mm, many sigmas of a well-measured feature, that
-    is not an error of the filter (no image can see it). docs/filters.md, "The gauge".
-    """
-    eps = estimation_error(x_hat, x_true)
-    out = nees_all(eps, P_eps, x_hat)
-    with np.errstate(all="ignore"):
-        ok = np.isfinite(x_hat).all(-1)
-        if ok.any():
-            xh = np.where(ok[..., None], x_hat, np.broadcast_to(x_true, x_hat.shape))
-            d = align_gauge(xh, x_true)
-            xa = gauge_act(xh, d)
-            J = gauge_act_jacobian(xh, d)
-            Pa = J @ P_eps @ np.swapaxes(J, -1, -2)
-            g = _nees_projected(estimation_error(xa, x_true), Pa, xa)
-            out["nees_gauge"] = np.where(ok, g, np.nan)
-    return out
-

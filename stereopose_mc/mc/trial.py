@@ -319,9 +319,8 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
 def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> dict[str, Array]:
     """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
-    Blocks and the gauge-projected NEES in the attitude chart (``core.errorstate``), the full
-    NEES in the aligned chart (``core.aligned.nees``): both ``n - 1`` dof, the same to first
-    order.
+    Full and gauge-projected NEES in the aligned chart, blocks in the attitude chart
+    (``core.aligned.nees_report``).
 
     ``P`` is the covariance of the full state ``(B, n, n)`` (mapped to the error state at
     the estimate) or of the filter's error state ``(B, n-1, n-1)``: the attitude chart's
@@ -329,17 +328,17 @@ def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") ->
     chart, in which every NEES is reported).
     """
     with np.errstate(all="ignore"):
-        P_att = attitude_covariance(x, P, error_state)
-        out = es.nees_report(x, P_att, x_true)
-        if P.shape[-1] == x.shape[-1]:
-            T = aligned.error_map(x)
-            P_al = T @ P @ np.swapaxes(T, -1, -2)
-        elif error_state == "aligned":
-            P_al = P
-        else:
-            P_al = aligned.from_attitude_chart(x, P_att)
-        out["nees"] = aligned.nees(x, P_al, x_true)  # the full NEES in the chart where the gauge is straight
-        return out
+        return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true)
+
+
+def aligned_covariance(x: Array, P: Array, error_state: str = "attitude") -> Array:
+    """A filter's covariance ``P`` at ``x`` as that of the aligned error state (``core.aligned``)."""
+    if P.shape[-1] == x.shape[-1]:
+        T = aligned.error_map(x)
+        return T @ P @ np.swapaxes(T, -1, -2)
+    if error_state == "aligned":
+        return P
+    return aligned.from_attitude_chart(x, P)
 
 
 def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Array:
