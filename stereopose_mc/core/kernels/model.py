@@ -34,6 +34,15 @@ NNZ = 16  # non-zero columns of one measurement row
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 
+@njit(**_JIT)
+def _mirror_lower(A):
+    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            A[j, i] = A[i, j]
+
+
 # --- attitude building blocks ------------------------------------------------------
 
 

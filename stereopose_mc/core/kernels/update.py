@@ -26,21 +26,13 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _measure_one
+from .aligned import E_POINTS, _chart, _measure_aligned, augment
+from .model import NNZ, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
 CONTROL = {"none": 0, "line_search": 1}
-
-
-@njit(**_JIT)
-def _mirror_lower(A):
-    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            A[j, i] = A[i, j]
 
 
 @njit(**_JIT)
@@ -102,43 +94,99 @@ def _masked(hx, Hval, y, mask):
 
 
 @njit(**_JIT)
-def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols):
-    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, ``P+``.
+def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D, dD):
+    """``h`` and the row-sparse ``H`` of one trial at ``x- [+] e`` in the filter's coordinates.
 
-    ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its optimal gain, as
-    ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to round-off, exactly
-    symmetric, at a third of the cost.
+    ``chart`` 0: the full state, ``xt = x- + e``, ``H`` of ``model._measure_one``; 1: the aligned
+    error state, ``xt = aligned.chart(x-, e)``, ``H_e`` of ``aligned._measure_aligned``.
+    """
+    if chart == 0:
+        for i in range(xp.shape[0]):
+            xt[i] = xp[i] + e[i]
+        _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    else:
+        _measure_aligned(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt,
+                         D, dD)  # fmt: skip
 
-    Returns ``(x+, P+, nu, nis, ok)``; the quaternion of ``x+`` is renormalized.
+
+@njit(**_JIT)
+def _reset(chart, xp, e, out):
+    """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), or ``aligned.chart``."""
+    if chart == 0:
+        for i in range(xp.shape[0]):
+            out[i] = xp[i] + e[i]
+        _normalize_q(out)
+    else:
+        _chart(xp, e, out, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+
+
+@njit(**_JIT)
+def _with_virtual(chart, M, Maug):
+    """``M`` with, in the aligned chart, the rows of the virtual columns appended (``aligned.augment``)."""
+    if chart == 0:
+        for i in range(M.shape[0]):
+            for j in range(M.shape[1]):
+                Maug[i, j] = M[i, j]
+    else:
+        augment(M, Maug)
+
+
+@njit(**_JIT)
+def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart):
+    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
+
+    ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
+    of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
+    ``x+ = x [+] e+``). ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its
+    optimal gain, as ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to
+    round-off, exactly symmetric, at a third of the cost.
+
+    Returns ``(x+, P+, nu, nis, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
     B, n = x.shape
+    ne = P.shape[1]
+    nv = ne + (3 if chart == 1 else 0)  # columns of H, virtual ones included
     m = y.shape[1]
     xo = np.empty((B, n))
-    Po = np.empty((B, n, n))
+    Po = np.empty((B, ne, ne))
     nu = np.empty((B, m))
     nis = np.empty(B)
     ok = np.ones(B, np.bool_)
     hx = np.empty(m)
     Hval = np.zeros((m, NNZ))
-    HP = np.empty((m, n))
+    Paug = np.empty((nv, ne))
+    HP = np.empty((m, nv))
     S = np.empty((m, m))
     Ls = np.empty((m, m))
-    Z = np.empty((m, n + 1))
+    Z = np.empty((m, ne + 1))
+    e = np.zeros(ne)
+    xt = np.empty(n)
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
-        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        for i in range(ne):
+            e[i] = 0.0
+        _measure_at(chart, x[b], e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                    D, dD)  # fmt: skip
         _masked(hx, Hval, y[b], mask[b])
+        _with_virtual(chart, P[b], Paug)
         for r in range(m):
             nu[b, r] = y[b, r] - hx[r]
-            for j in range(n):
+            for j in range(ne):
                 HP[r, j] = 0.0
             for k in range(NNZ):
                 h = Hval[r, k]
                 if h != 0.0:
                     c = cols[r, k]
-                    for j in range(n):
-                        HP[r, j] += h * P[b, c, j]
+                    for j in range(ne):
+                        HP[r, j] += h * Paug[c, j]
+        if chart == 1:  # H P's virtual columns: the sums over the points
+            for r in range(m):
+                for a in range(3):
+                    s = 0.0
+                    for p in range((ne - 14) // 3):
+                        s += HP[r, E_POINTS + 3 * p + a]
+                    HP[r, ne + a] = s
         for r in range(m):
             for q in range(r + 1):
                 s = 0.0
@@ -153,35 +201,33 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
         # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
         # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
         for r in range(m):
-            for j in range(n):
+            for j in range(ne):
                 Z[r, j] = HP[r, j]
-            Z[r, n] = nu[b, r]
+            Z[r, ne] = nu[b, r]
             for k in range(r):
                 a = Ls[r, k]
-                for j in range(n + 1):
+                for j in range(ne + 1):
                     Z[r, j] -= a * Z[k, j]
             d = Ls[r, r]
-            for j in range(n + 1):
+            for j in range(ne + 1):
                 Z[r, j] /= d
         v = 0.0
-        for i in range(n):
-            xo[b, i] = x[b, i]
         Pb = Po[b]
-        for i in range(n):
+        for i in range(ne):
             for j in range(i + 1):
                 Pb[i, j] = P[b, i, j]
         for r in range(m):
-            a = Z[r, n]
+            a = Z[r, ne]
             v += a * a
-            for i in range(n):
-                xo[b, i] += Z[r, i] * a
+            for i in range(ne):
+                e[i] += Z[r, i] * a
                 c = Z[r, i]
                 if c != 0.0:
                     for j in range(i + 1):
                         Pb[i, j] -= c * Z[r, j]
         _mirror_lower(Pb)
         nis[b] = v
-        _normalize_q(xo[b])
+        _reset(chart, x[b], e, xo[b])
     return xo, Po, nu, nis, ok
 
 
@@ -196,7 +242,8 @@ def _normalize_q(x):
 def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
 
-    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular) and
+    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
+    past ``n``, those of virtual columns, ``_with_virtual``, are read in full) and
     ``A += Hw[r]^T Hw[r]`` on the lower triangle, contiguous inner loops.
     """
     m, n = Hw.shape
@@ -212,7 +259,7 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
             h = Hval[r, k] * rws[r]
             if h != 0.0:
                 c = cols[r, k]
-                for j in range(c + 1):
+                for j in range(min(c + 1, n)):
                     Hw[r, j] += h * L[c, j]
         for i in range(n):
             a = Hw[r, i]
@@ -223,10 +270,11 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
 
 
 @njit(**_JIT)
-def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, xt, hx, Hdummy, D, dD):
-    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` (``h`` only)."""
-    _to_x(xp, L, z, xt)
-    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, D, dD)
+def _cost_at(chart, z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, e, xt, hx,
+             Hdummy, D, dD):  # fmt: skip
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2`` (``h`` only)."""
+    _lower_mul(L, z, e)
+    _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, xt, D, dD)
     c = 0.0
     for i in range(z.shape[0]):
         c += z[i] * z[i]
@@ -282,27 +330,29 @@ def _posterior_covariance(L, LA, out, X):
 
 
 @njit(**_JIT)
-def _to_x(xp, L, z, out):
-    """``out = x- + L z`` (``L`` lower triangular)."""
-    n = xp.shape[0]
-    for i in range(n):
-        s = xp[i]
+def _lower_mul(L, z, out):
+    """``out = L z`` (``L`` lower triangular)."""
+    for i in range(L.shape[0]):
+        s = 0.0
         for j in range(i + 1):
             s += L[i, j] * z[j]
         out[i] = s
 
 
 @njit(**_JIT)
-def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols,
+def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
                       tol, max_iter, control, stopping, max_halvings):  # fmt: skip
-    """Gauss-Newton IEKF in whitened coordinates ``x = x- + L z`` (``kalman.iekf_update``), per trial.
+    """Gauss-Newton IEKF in whitened coordinates ``x = x- [+] L z`` (``kalman.iekf_update``), per trial.
 
-    ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw.
-    Returns ``(x+, P+, nu, nis, iterations, converged, ok)``; the quaternion of ``x+`` is renormalized.
+    ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
+    of the aligned error state, as ``mekf.update``); ``control``: 0 none, 1 line search;
+    ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
+    iterations, converged, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
-    B, n = x.shape
+    B, nx = x.shape
+    n = P.shape[1]  # the filter's coordinates: the full state, or the error state
     m = y.shape[1]
-    xo = np.empty((B, n))
+    xo = np.empty((B, nx))
     Po = np.empty((B, n, n))
     nu = np.empty((B, m))
     nis = np.empty(B)
@@ -313,6 +363,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Hval = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
     L = np.empty((n, n))
+    Laug = np.empty((n + (3 if chart == 1 else 0), n))
     Hw = np.empty((m, n))
     rw = np.empty(m)
     v = np.empty(m)
@@ -325,8 +376,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     zt = np.empty(n)
     d = np.empty(n)
     g = np.empty(n)
-    xt = np.empty(n)
+    xt = np.empty(nx)
     dx = np.empty(n)
+    e = np.empty(n)
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
@@ -339,9 +391,13 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         if not _cholesky(P[b], L):
             ok[b] = False
             continue
-        _measure_one(xp, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _with_virtual(chart, L, Laug)
+        for i in range(n):
+            e[i] = 0.0
+        _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                    D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
-        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -386,8 +442,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 for _h in range(max_halvings + 1):
                     for i in range(n):
                         zt[i] = z[i] + a * d[i]
-                    ct = _cost_at(zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                                  xt, hx, Hdummy, D, dD)  # fmt: skip
+                    ct = _cost_at(chart, zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd,
+                                  ndd, e, xt, hx, Hdummy, D, dD)  # fmt: skip
                     if math.isfinite(ct) and ct <= cost:
                         accepted = True
                         c_new = ct
@@ -437,15 +493,16 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 conv[b] = True
             if small or (control == 1 and not accepted) or it == max_iter - 1:
                 break
-            _to_x(xp, L, z, xt)
-            _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+            _lower_mul(L, z, e)
+            _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                        D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
-            _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         if failed or not _cholesky(Afin, LA):
             ok[b] = False
             continue
-        _to_x(xp, L, z, xo[b])
-        _normalize_q(xo[b])
+        _lower_mul(L, z, e)
+        _reset(chart, xp, e, xo[b])
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
         _posterior_covariance(L, LA, Po[b], T)
