@@ -206,3 +206,43 @@ def test_filter_types_without_kernels_fall_back_to_their_numpy_step_exactly():
         assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/UKF/IEKF step
         np.testing.assert_array_equal(ra.x_final, rb.x_final)
         np.testing.assert_array_equal(ra.errors, rb.errors)
+
+
+@pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
+@pytest.mark.parametrize("masked", [False, True])
+def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked):
+    """One aligned update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
+    the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
+    from stereopose_mc.filters import compiled, mekf, relnav
+
+    scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
+    fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], sigma_image=1e-3, sigma_flow=1e-3,
+                             sigma_alpha=1e-4, gate_probability=0.99 if masked else None, stopping=stopping)  # fmt: skip
+    rng = np.random.default_rng(4)
+    B, k, ne = 5, 5, setup.x0.size - 1
+    A = 0.02 * rng.normal(size=(B, ne, ne))
+    P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(ne)
+    x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), np.einsum("bij,bj->bi", np.linalg.cholesky(P),
+                                                                           rng.normal(size=(B, ne))))  # fmt: skip
+    vis = exact.visible[k]
+    y = exact.y[k] + 1e-3 * rng.normal(size=(B,) + exact.y[k].shape)
+    keep = rng.random((B, vis.sum())) > 0.2
+    keep[0, 1] = True
+    if masked:
+        y[0, np.flatnonzero(vis)[1]] += 0.5  # an outlier for the gate
+    step = relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), np.broadcast_to(truth.alpha[k], (B, 3)),
+                                  vis, truth.t[k], feature_mask=keep if masked else None)  # fmt: skip
+    rows = np.arange(B)
+    a = mekf.update(x, P, step, rows, fs, setup)
+    b = compiled.update(x, P, step, rows, fs, setup)
+    s = np.sqrt(np.diagonal(a.P, axis1=-2, axis2=-1))
+    assert np.max(np.abs(aligned.local(a.x, b.x)) / s) < 1e-11
+    assert np.max(np.abs(a.P - b.P) / (s[:, :, None] * s[:, None, :])) < 1e-11
+    np.testing.assert_allclose(b.nis, a.nis, rtol=1e-10)
+    np.testing.assert_allclose(b.nu, a.nu, rtol=0, atol=1e-14)
+    for f in ("iterations", "converged", "rejected", "features_used"):
+        np.testing.assert_array_equal(getattr(b, f), getattr(a, f), f)
+    if masked:
+        assert a.rejected[0] >= 1 and (a.features_used < vis.sum()).any()
+    if kind == "iekf":
+        assert (a.iterations > 1).any()
