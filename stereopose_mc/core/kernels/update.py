@@ -36,34 +36,52 @@ CONTROL = {"none": 0, "line_search": 1}
 
 
 @njit(**_JIT)
+def _combine(out, lo, hi, M, coef, k0, k1, sign):
+    """``out[lo:hi] += sign * sum_{k0 <= k < k1} coef[k] M[k, lo:hi]``, four rows of ``M`` per pass.
+
+    The row operation of the factorizations, triangular solves and ``X^T X`` products below:
+    contiguous (vectorizable without reassociating a sum), and ``out`` is read and written a
+    quarter as often as with one axpy per row; a group of four zero coefficients is skipped.
+    """
+    k = k0
+    while k + 4 <= k1:
+        a0, a1, a2, a3 = sign * coef[k], sign * coef[k + 1], sign * coef[k + 2], sign * coef[k + 3]
+        if a0 != 0.0 or a1 != 0.0 or a2 != 0.0 or a3 != 0.0:
+            for c in range(lo, hi):
+                out[c] += (a0 * M[k, c] + a1 * M[k + 1, c]) + (a2 * M[k + 2, c] + a3 * M[k + 3, c])
+        k += 4
+    while k < k1:
+        a = sign * coef[k]
+        if a != 0.0:
+            for c in range(lo, hi):
+                out[c] += a * M[k, c]
+        k += 1
+
+
+@njit(**_JIT)
 def _cholesky(A, L):
     """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
 
-    Right-looking on ``U = L^T`` held by rows, so that the trailing update is a contiguous
-    axpy per row (vectorizable without reassociating sums).
+    Left-looking on ``U = L^T``, held by rows in the upper triangle of ``L`` (transposed at the
+    end): row ``j`` of ``U`` is row ``j`` of ``A``'s upper triangle minus a combination of the
+    rows above it (``_combine``), divided by the square root of its pivot.
     """
     n = A.shape[0]
-    U = np.empty((n, n))
     for i in range(n):
         for j in range(i, n):
-            U[i, j] = A[j, i]
-    for k in range(n):
-        d = U[k, k]
+            L[i, j] = A[j, i]
+    for j in range(n):
+        _combine(L[j], j, n, L, L[:, j], 0, j, -1.0)
+        d = L[j, j]
         if not d > 0.0:
             return False
         d = math.sqrt(d)
-        for j in range(k, n):
-            U[k, j] /= d
-        for i in range(k + 1, n):
-            a = U[k, i]
-            if a != 0.0:
-                for j in range(i, n):
-                    U[i, j] -= a * U[k, j]
+        for c in range(j, n):
+            L[j, c] /= d
     for i in range(n):
-        for j in range(i + 1):
-            L[i, j] = U[j, i]
-        for j in range(i + 1, n):
-            L[i, j] = 0.0
+        for j in range(i):
+            L[i, j] = L[j, i]
+            L[j, i] = 0.0
     return True
 
 
@@ -197,34 +215,26 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
         if not _cholesky(S, Ls):
             ok[b] = False
             continue
-        # W = Ls^-1 [H P | nu] (forward substitution, row axpys): with K = P H^T S^-1,
+        # W = Ls^-1 [H P | nu] (forward substitution by rows): with K = P H^T S^-1,
         # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
         # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
         for r in range(m):
             for j in range(ne):
                 Z[r, j] = HP[r, j]
             Z[r, ne] = nu[b, r]
-            for k in range(r):
-                a = Ls[r, k]
-                for j in range(ne + 1):
-                    Z[r, j] -= a * Z[k, j]
+            _combine(Z[r], 0, ne + 1, Z, Ls[r], 0, r, -1.0)
             d = Ls[r, r]
             for j in range(ne + 1):
                 Z[r, j] /= d
         v = 0.0
+        for r in range(m):
+            v += Z[r, ne] * Z[r, ne]
+        _combine(e, 0, ne, Z, Z[:, ne], 0, m, 1.0)
         Pb = Po[b]
         for i in range(ne):
             for j in range(i + 1):
                 Pb[i, j] = P[b, i, j]
-        for r in range(m):
-            a = Z[r, ne]
-            v += a * a
-            for i in range(ne):
-                e[i] += Z[r, i] * a
-                c = Z[r, i]
-                if c != 0.0:
-                    for j in range(i + 1):
-                        Pb[i, j] -= c * Z[r, j]
+            _combine(Pb[i], 0, i + 1, Z, Z[:, i], 0, m, -1.0)
         _mirror_lower(Pb)
         nis[b] = v
         _reset(chart, x[b], e, xo[b])
@@ -243,29 +253,25 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
 
     Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
-    past ``n``, those of virtual columns, ``_with_virtual``, are read in full) and
-    ``A += Hw[r]^T Hw[r]`` on the lower triangle, contiguous inner loops.
+    past ``n``, those of virtual columns, ``_with_virtual``, are read in full); then the lower
+    triangle of ``A`` row by row, ``A[i, :i+1] = I + sum_r Hw[r, i] Hw[r, :i+1]`` (``_combine``).
     """
     m, n = Hw.shape
-    for i in range(n):
-        for j in range(i + 1):
-            A[i, j] = 0.0
-        A[i, i] = 1.0
     for r in range(m):
         rw[r] = (yb[r] - hx[r]) * rws[r]
         for j in range(n):
             Hw[r, j] = 0.0
-        for k in range(NNZ):
-            h = Hval[r, k] * rws[r]
-            if h != 0.0:
-                c = cols[r, k]
-                for j in range(min(c + 1, n)):
-                    Hw[r, j] += h * L[c, j]
-        for i in range(n):
-            a = Hw[r, i]
-            if a != 0.0:
-                for j in range(i + 1):
-                    A[i, j] += a * Hw[r, j]
+        for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
+            h0, h1, h2, h3 = Hval[r, k] * rws[r], Hval[r, k + 1] * rws[r], Hval[r, k + 2] * rws[r], Hval[r, k + 3] * rws[r]
+            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
+                c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
+                for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
+                    Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+    for i in range(n):
+        for j in range(i + 1):
+            A[i, j] = 0.0
+        A[i, i] = 1.0
+        _combine(A[i], 0, i + 1, Hw, Hw[:, i], 0, m, 1.0)
     _mirror_lower(A)
 
 
@@ -310,22 +316,14 @@ def _posterior_covariance(L, LA, out, X):
     for i in range(n):
         for j in range(n):
             X[i, j] = L[j, i]
-        for k in range(i):
-            a = LA[i, k]
-            for j in range(n):
-                X[i, j] -= a * X[k, j]
+        _combine(X[i], 0, n, X, LA[i], 0, i, -1.0)
         d = LA[i, i]
         for j in range(n):
             X[i, j] /= d
     for i in range(n):
         for j in range(i + 1):
             out[i, j] = 0.0
-    for k in range(n):
-        for i in range(n):
-            a = X[k, i]
-            if a != 0.0:
-                for j in range(i + 1):
-                    out[i, j] += a * X[k, j]
+        _combine(out[i], 0, i + 1, X, X[:, i], 0, n, 1.0)
     _mirror_lower(out)
 
 
