@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower
+from .model import NNZ, _combine, _dcm, _dcm_derivative, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -299,16 +299,13 @@ def error_map_batch(x_ref):
 
 
 @njit(**_JIT)
-def _sparse_times(A, M, out, rows):
-    """``out[r] = sum_t A[r, t] M[t]`` for ``r < rows``, skipping the zeros of ``A`` (row axpys)."""
-    for r in range(rows):
-        for j in range(out.shape[1]):
-            out[r, j] = 0.0
-        for t in range(A.shape[1]):
-            a = A[r, t]
-            if a != 0.0:
-                for j in range(out.shape[1]):
-                    out[r, j] += a * M[t, j]
+def _sparse_row_times(out, a, M):
+    """``out += a M[:, :len(out)]`` (``a`` a sparse row), one axpy per non-zero of ``a``."""
+    for t in range(a.shape[0]):
+        c = a[t]
+        if c != 0.0:
+            for j in range(out.shape[0]):
+                out[j] += c * M[t, j]
 
 
 @njit(**_JIT)
@@ -318,9 +315,10 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     ``x (B, n)`` the posteriors at which ``F`` was evaluated, ``x_pred (B, n)`` the predicted
     states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
     of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
-    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e`` is formed from the
-    non-zeros of ``T``; ``P-`` (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` plus
-    ``T diag(Q) T^T``, each a product that skips the zeros of its sparse left factor.
+    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)``; ``P-``
+    (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` plus ``(T Q) T^T``: every product
+    by rows, skipping the zeros of the sparse left factor (one by one for ``T``, whose
+    non-zeros are scattered; by groups of four in ``model._combine`` for ``Phi_e``).
     """
     B, n = x.shape
     ne = n - 1
@@ -334,47 +332,33 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     M = np.empty((ne, ne))
     Mt = np.empty((ne, ne))
     e0 = np.zeros(ne)
-    c = np.empty(15, np.int64)
-    for j in range(13):
-        c[j] = j
-    c[13], c[14] = n - 2, n - 1
     for b in range(B):
         _chart_jacobian(x[b], e0, S)
         _error_map(x_pred[b], T)
-        for a in range(13):  # (Phi S)[0:13] = Tb S[c]
+        for a in range(n):
             for j in range(ne):
-                PS[a, j] = 0.0
-            for l in range(15):
-                t = Tb[b, a, l]
-                if t != 0.0:
-                    for j in range(ne):
-                        PS[a, j] += t * S[c[l], j]
-        for a in range(13, n):
+                PS[a, j] = S[a, j] if a >= 13 else 0.0
+        for a in range(13):  # (Phi S)[0:13] = Tb S[c], c = [0..12, n-2, n-1]
+            _combine(PS[a], 0, ne, S, Tb[b, a], 0, 13, 1.0)
+            _combine(PS[a], 0, ne, S[n - 15 :], Tb[b, a], 13, 15, 1.0)
+        for r in range(ne):  # Phi_e = T (Phi S); M = Phi_e P
             for j in range(ne):
-                PS[a, j] = S[a, j]
-        _sparse_times(T, PS, Y, ne)  # Phi_e
-        _sparse_times(Y, P[b], M, ne)
+                Y[r, j] = 0.0
+                M[r, j] = 0.0
+            _sparse_row_times(Y[r], T[r], PS)
+            _combine(M[r], 0, ne, P[b], Y[r], 0, ne, 1.0)
         for i in range(ne):
             for j in range(ne):
                 Mt[i, j] = M[j, i]
-        for i in range(ne):
             for j in range(n):
                 TQ[i, j] = T[i, j] * Q[b, j]
                 Tt[j, i] = T[i, j]
         Pb = out[b]
-        for r in range(ne):  # lower triangle of Y M^T + (T Q) T^T
+        for r in range(ne):  # lower triangle of Phi_e M^T + (T Q) T^T
             for j in range(r + 1):
                 Pb[r, j] = 0.0
-            for t in range(ne):
-                a = Y[r, t]
-                if a != 0.0:
-                    for j in range(r + 1):
-                        Pb[r, j] += a * Mt[t, j]
-            for t in range(n):
-                a = TQ[r, t]
-                if a != 0.0:
-                    for j in range(r + 1):
-                        Pb[r, j] += a * Tt[t, j]
+            _combine(Pb[r], 0, r + 1, Mt, Y[r], 0, ne, 1.0)
+            _sparse_row_times(Pb[r, : r + 1], TQ[r], Tt)
         _mirror_lower(Pb)
     return out
 

@@ -43,6 +43,29 @@ def _mirror_lower(A):
             A[j, i] = A[i, j]
 
 
+@njit(**_JIT)
+def _combine(out, lo, hi, M, coef, k0, k1, sign):
+    """``out[lo:hi] += sign * sum_{k0 <= k < k1} coef[k] M[k, lo:hi]``, four rows of ``M`` per pass.
+
+    The row operation of the factorizations, triangular solves and ``X^T X`` products below:
+    contiguous (vectorizable without reassociating a sum), and ``out`` is read and written a
+    quarter as often as with one axpy per row; a group of four zero coefficients is skipped.
+    """
+    k = k0
+    while k + 4 <= k1:
+        a0, a1, a2, a3 = sign * coef[k], sign * coef[k + 1], sign * coef[k + 2], sign * coef[k + 3]
+        if a0 != 0.0 or a1 != 0.0 or a2 != 0.0 or a3 != 0.0:
+            for c in range(lo, hi):
+                out[c] += (a0 * M[k, c] + a1 * M[k + 1, c]) + (a2 * M[k + 2, c] + a3 * M[k + 3, c])
+        k += 4
+    while k < k1:
+        a = sign * coef[k]
+        if a != 0.0:
+            for c in range(lo, hi):
+                out[c] += a * M[k, c]
+        k += 1
+
+
 # --- attitude building blocks ------------------------------------------------------
 
 
