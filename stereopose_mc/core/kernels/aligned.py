@@ -300,12 +300,32 @@ def error_map_batch(x_ref):
 
 @njit(**_JIT)
 def _sparse_row_times(out, a, M):
-    """``out += a M[:, :len(out)]`` (``a`` a sparse row), one axpy per non-zero of ``a``."""
+    """``out += a M`` (``a`` a sparse row), one axpy per non-zero of ``a``."""
     for t in range(a.shape[0]):
         c = a[t]
         if c != 0.0:
             for j in range(out.shape[0]):
                 out[j] += c * M[t, j]
+
+
+@njit(**_JIT)
+def _add_mapped_noise(T, Q, Pb, idx, val):
+    """``Pb += T diag(Q) T^T`` on the lower triangle, one column of ``T`` (its few non-zeros) at a time."""
+    ne, n = T.shape
+    for j in range(n):
+        q = Q[j]
+        if q == 0.0:
+            continue
+        cnt = 0
+        for r in range(ne):
+            if T[r, j] != 0.0:
+                idx[cnt] = r
+                val[cnt] = T[r, j]
+                cnt += 1
+        for a in range(cnt):
+            va = q * val[a]
+            for c in range(a + 1):
+                Pb[idx[a], idx[c]] += va * val[c]
 
 
 @njit(**_JIT)
@@ -316,17 +336,17 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
     of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
     ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)``; ``P-``
-    (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` plus ``(T Q) T^T``: every product
-    by rows, skipping the zeros of the sparse left factor (one by one for ``T``, whose
-    non-zeros are scattered; by groups of four in ``model._combine`` for ``Phi_e``).
+    (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` (by rows, ``model._combine``) plus
+    ``T diag(Q) T^T`` (column by column of ``T``, on its non-zeros); ``Phi_e = T (Phi S)`` by
+    rows on the non-zeros of ``T``.
     """
     B, n = x.shape
     ne = n - 1
     out = np.empty((B, ne, ne))
     S = np.empty((n, ne))
     T = np.empty((ne, n))
-    TQ = np.empty((ne, n))
-    Tt = np.empty((n, ne))
+    idx = np.empty(ne, np.int64)
+    val = np.empty(ne)
     PS = np.empty((n, ne))
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
@@ -350,15 +370,12 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
         for i in range(ne):
             for j in range(ne):
                 Mt[i, j] = M[j, i]
-            for j in range(n):
-                TQ[i, j] = T[i, j] * Q[b, j]
-                Tt[j, i] = T[i, j]
         Pb = out[b]
-        for r in range(ne):  # lower triangle of Phi_e M^T + (T Q) T^T
+        for r in range(ne):  # lower triangle of Phi_e M^T + T Q T^T
             for j in range(r + 1):
                 Pb[r, j] = 0.0
             _combine(Pb[r], 0, r + 1, Mt, Y[r], 0, ne, 1.0)
-            _sparse_row_times(Pb[r, : r + 1], TQ[r], Tt)
+        _add_mapped_noise(T, Q[b], Pb, idx, val)
         _mirror_lower(Pb)
     return out
 
