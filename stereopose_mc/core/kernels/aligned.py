@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _combine, _dcm, _dcm_derivative, _measure_one, _mirror_lower
+from .model import NNZ, _combine, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -79,15 +79,23 @@ def _left_times(p, M, out):
 
 
 @njit(**_JIT)
+def _point_mean(x, N, pb):
+    """``pb = P_bar``, the mean of the ``N`` feature points of state ``x``."""
+    for a in range(3):
+        pb[a] = 0.0
+    for i in range(N):
+        for a in range(3):
+            pb[a] += x[13 + 3 * i + a]
+    for a in range(3):
+        pb[a] /= N
+
+
+@njit(**_JIT)
 def _centroid_ref(xr, N, Dref, v):
     """``D_ref = D(q_ref)`` and ``v = D_ref P_bar,ref``; returns nothing (fills both)."""
     _dcm(xr[9:13], Dref)
-    pb = np.zeros(3)
-    for i in range(N):
-        for a in range(3):
-            pb[a] += xr[13 + 3 * i + a]
-    for a in range(3):
-        pb[a] /= N
+    pb = np.empty(3)
+    _point_mean(xr, N, pb)
     for a in range(3):
         v[a] = Dref[a, 0] * pb[0] + Dref[a, 1] * pb[1] + Dref[a, 2] * pb[2]
 
@@ -237,12 +245,8 @@ def _error_map(xr, T):
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     _dcm_derivative(q, D, dD)
-    pb = np.zeros(3)
-    for i in range(N):
-        for a in range(3):
-            pb[a] += xr[13 + 3 * i + a]
-    for a in range(3):
-        pb[a] /= N
+    pb = np.empty(3)
+    _point_mean(xr, N, pb)
     v = np.empty(3)
     dv = np.empty((3, 4))
     for a in range(3):
@@ -438,26 +442,11 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
 
 @njit(**_JIT)
 def measurement_columns(ne, vis, channels, pseudo):
-    """Column indices ``(m, 16)`` of the row-sparse ``H_e`` (``ne, ne+1, ne+2``: the virtual point-sum columns)."""
-    nv = vis.shape[0]
-    m = nv * channels + (3 if pseudo else 0)
-    cols = np.zeros((m, NNZ), np.int64)
-    for f in range(nv):
-        for c in range(channels):
-            row = f * channels + c
-            for j in range(9):
-                cols[row, j] = j
-            for j in range(3):
-                cols[row, 9 + j] = E_POINTS + 3 * vis[f] + j
-                cols[row, 12 + j] = ne + j
-    if pseudo:
-        for i in range(3):
-            row = nv * channels + i
-            for j in range(6):
-                cols[row, j] = 6 + j
-            cols[row, 6] = ne - 2
-            cols[row, 7] = ne - 1
-    return cols
+    """Column indices ``(m, 16)`` of the row-sparse ``H_e``: a feature's rows see ``e_c, e_cdot, e_omega``,
+    its point and the virtual point-sum columns ``ne, ne+1, ne+2``; the pseudo rows ``e_omega, delta, e_k``."""
+    k = np.array([ne - 2, ne - 1])
+    return row_columns(vis, channels, np.arange(9), E_POINTS, np.arange(ne, ne + 3),
+                       np.concatenate((np.arange(6, 12), k)), pseudo)  # fmt: skip
 
 
 @njit(**_JIT)

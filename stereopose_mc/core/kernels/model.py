@@ -548,27 +548,31 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
 
 
 @njit(**_JIT)
-def measurement_columns(n, vis, channels, pseudo):
-    """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``."""
+def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
+    """Column indices ``(m, 16)`` of a row-sparse ``H``: each row of visible feature ``f`` holds the
+    columns ``before``, then its point's 3 (``point0 + 3 vis[f]``), then ``after``; the 3 pseudo rows
+    hold ``pseudo_cols``; the rest is padding (column 0, value 0)."""
     nv = vis.shape[0]
     m = nv * channels + (3 if pseudo else 0)
     cols = np.zeros((m, NNZ), np.int64)
-    for f in range(nv):
-        p0 = 13 + 3 * vis[f]
-        for c in range(channels):
-            row = f * channels + c
-            for j in range(13):
-                cols[row, j] = j
-            for j in range(3):
-                cols[row, 13 + j] = p0 + j
-    if pseudo:
-        for i in range(3):
-            row = nv * channels + i
-            for j in range(7):
-                cols[row, j] = 6 + j
-            cols[row, 7] = n - 2
-            cols[row, 8] = n - 1
+    nb = before.shape[0]
+    for row in range(nv * channels):
+        p0 = point0 + 3 * vis[row // channels]
+        cols[row, :nb] = before
+        for j in range(3):
+            cols[row, nb + j] = p0 + j
+        cols[row, nb + 3 : nb + 3 + after.shape[0]] = after
+    for i in range(3 if pseudo else 0):
+        cols[nv * channels + i, : pseudo_cols.shape[0]] = pseudo_cols
     return cols
+
+
+@njit(**_JIT)
+def measurement_columns(n, vis, channels, pseudo):
+    """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``: a feature's rows see
+    ``rho, rho_dot, omega, q`` and its point, the pseudo rows ``omega, q, k``."""
+    k = np.array([n - 2, n - 1])
+    return row_columns(vis, channels, np.arange(13), 13, np.arange(0), np.concatenate((np.arange(6, 13), k)), pseudo)
 
 
 @njit(**_JIT)
