@@ -11,6 +11,12 @@ factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the op
 construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
 line search (MAP cost, step halving) and unit-free stopping test run per trial.
 
+Both kernels take the filter's ``chart``: 0, the full state (``filters.relnav``: ``x + dx``,
+quaternion renormalized); 1, the aligned error state (``filters.mekf`` with
+``core.aligned``: prior ``e = 0`` with the error-state ``P``, ``h(x- [+] e)``, the row-sparse
+``H_e`` of ``core.kernels.aligned`` whose virtual columns are served by the point sums
+appended to ``P`` or ``L`` (``_with_virtual``), reset ``x+ = x- [+] e+``).
+
 A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
 ``h = y`` and ``H = 0`` on that row.
