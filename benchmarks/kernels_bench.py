@@ -216,8 +216,8 @@ def _features(cfg: BenchConfig) -> list[Row]:
             vis = prep.exact.visible[1]
             step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo),
                                           alpha=noisy.alpha[:, 1], visible=vis, t=prep.truth.t[1])  # fmt: skip
-            P0 = estimators.initial_covariance(x0, np.broadcast_to(np.diag(s.P0_diag), (trials.size,) + (s.x0.size,) * 2),
-                                               fs)  # fmt: skip
+            P0 = np.broadcast_to(np.diag(s.P0_diag), (trials.size,) + (s.x0.size,) * 2)
+            P0 = estimators.initial_covariance(x0, P0, fs)
             for kernels in KERNELS:
                 sf = step_functions(kernels)
                 with np.errstate(all="ignore"):

@@ -123,10 +123,9 @@ def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> di
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
-    it = _iterated(fs, setup, step) if supported(fs) else None
-    if not supported(fs) or (it is FIRST_ITERATED and chart_code(fs) == 0):
-        return estimators.update(x, P, step, rows, fs, setup)  # UKF, attitude chart, LM, full-state iterated first update
-    return compiled_update(x, P, step, rows, fs, setup, it)
+    if not supported(fs) or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
+        return estimators.update(x, P, step, rows, fs, setup)  # UKF, attitude chart, LM, full state's first iterated
+    return compiled_update(x, P, step, rows, fs, setup)
 
 
 def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
@@ -137,11 +136,10 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
     return mask
 
 
-def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
-                    iterated: dict | None = None):  # fmt: skip
+def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """``estimators.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
 
-    ``iterated``: the IEKF's knobs (``_iterated``), None for the EKF update. A trial whose
+    The EKF or the IEKF as ``relnav.kalman_update`` chooses (``_iterated``). A trial whose
     Cholesky factorization fails (``S`` or ``P-`` not numerically positive definite, as in a
     filter that is losing track) is updated by ``estimators.update``, so it meets numpy's
     solvers and their errors exactly as with ``--kernels numpy``.
@@ -150,7 +148,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     from ..core.kernels import update as ku
     from . import gating
 
-    chart = chart_code(fs)
+    chart, iterated = chart_code(fs), _iterated(fs, setup, step)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     b, ne = P.shape[:2]
@@ -198,8 +196,8 @@ def _patch(u, bad: Array, v):
 
 
 def supported(fs: FilterSetup) -> bool:
-    """Filters the compiled update covers (others run ``estimators.update``): the EKF, the IEKF and the MEKF in
-    the full state (not the MEKF) or the aligned error state, iterated with line search or none."""
+    """Filters the compiled update covers (others run ``estimators.update``): the EKF and the IEKF in the full
+    state or the aligned error state and the aligned MEKF, their iterated updates with line search or none."""
     from ..core.kernels import update as ku
 
     if chart_code(fs) is None:

@@ -216,8 +216,9 @@ def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, sto
     from stereopose_mc.filters import compiled, mekf, relnav
 
     scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
-    fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], sigma_image=1e-3, sigma_flow=1e-3,
-                             sigma_alpha=1e-4, gate_probability=0.99 if masked else None, stopping=stopping)  # fmt: skip
+    loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
+    fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
+                             stopping=stopping)  # fmt: skip
     rng = np.random.default_rng(4)
     B, k, ne = 5, 5, setup.x0.size - 1
     A = 0.02 * rng.normal(size=(B, ne, ne))
@@ -230,8 +231,9 @@ def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, sto
     keep[0, 1] = True
     if masked:
         y[0, np.flatnonzero(vis)[1]] += 0.5  # an outlier for the gate
-    step = relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), np.broadcast_to(truth.alpha[k], (B, 3)),
-                                  vis, truth.t[k], feature_mask=keep if masked else None)  # fmt: skip
+    alpha = np.broadcast_to(truth.alpha[k], (B, 3))
+    step = relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), alpha, vis, truth.t[k],
+                                  feature_mask=keep if masked else None)  # fmt: skip
     rows = np.arange(B)
     a = mekf.update(x, P, step, rows, fs, setup)
     b = compiled.update(x, P, step, rows, fs, setup)

@@ -95,7 +95,8 @@ def _masked(hx, Hval, y, mask):
 
 
 @njit(**_JIT)
-def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D, dD):
+def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D,
+                dD):  # fmt: skip
     """``h`` and the row-sparse ``H`` of one trial at ``x- [+] e`` in the filter's coordinates.
 
     ``chart`` 0: the full state, ``xt = x- + e``, ``H`` of ``model._measure_one``; 1: the aligned
@@ -245,7 +246,8 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
         for j in range(n):
             Hw[r, j] = 0.0
         for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
-            h0, h1, h2, h3 = Hval[r, k] * rws[r], Hval[r, k + 1] * rws[r], Hval[r, k + 2] * rws[r], Hval[r, k + 3] * rws[r]
+            s = rws[r]
+            h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
             if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
                 c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
                 for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
