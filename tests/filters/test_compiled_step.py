@@ -208,19 +208,16 @@ def test_filter_types_without_kernels_fall_back_to_their_numpy_step_exactly():
         np.testing.assert_array_equal(ra.errors, rb.errors)
 
 
-@pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
-@pytest.mark.parametrize("masked", [False, True])
-def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked):
-    """One aligned update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
-    the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
-    from stereopose_mc.filters import compiled, mekf, relnav
+def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
+    """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R."""
+    from stereopose_mc.filters import relnav
 
     scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
     loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
     fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
                              stopping=stopping)  # fmt: skip
     rng = np.random.default_rng(4)
-    B, k, ne = 5, 5, setup.x0.size - 1
+    ne = setup.x0.size - 1
     A = 0.02 * rng.normal(size=(B, ne, ne))
     P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(ne)
     x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), np.einsum("bij,bj->bi", np.linalg.cholesky(P),
@@ -234,6 +231,18 @@ def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, sto
     alpha = np.broadcast_to(truth.alpha[k], (B, 3))
     step = relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), alpha, vis, truth.t[k],
                                   feature_mask=keep if masked else None)  # fmt: skip
+    return x, P, step, fs, setup
+
+
+@pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
+@pytest.mark.parametrize("masked", [False, True])
+def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked):
+    """One aligned update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
+    the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
+    from stereopose_mc.filters import compiled, mekf
+
+    x, P, step, fs, setup = _aligned_step(kind, stopping, masked)
+    vis, B = step.visible, len(x)
     rows = np.arange(B)
     a = mekf.update(x, P, step, rows, fs, setup)
     b = compiled.update(x, P, step, rows, fs, setup)
@@ -248,3 +257,27 @@ def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, sto
         assert a.rejected[0] >= 1 and (a.features_used < vis.sum()).any()
     if kind == "iekf":
         assert (a.iterations > 1).any()
+
+
+def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
+    """A trial with an indefinite covariance: the EKF kernel's Cholesky of ``S`` fails, that trial is updated by
+    ``mekf.update`` (numpy's solver, which does not factorize), the others by the kernel; the IEKF raises as numpy."""
+    from stereopose_mc.filters import compiled, mekf
+
+    x, P, step, fs, setup = _aligned_step("ekf")
+    P[2] = -P[2]
+    rows = np.arange(len(x))
+    a = mekf.update(x, P, step, rows, fs, setup)
+    b = compiled.update(x, P, step, rows, fs, setup)
+    one = mekf.update(x[2:3], P[2:3], step, rows[2:3], fs, setup)
+    np.testing.assert_array_equal(b.x[2], one.x[0])
+    np.testing.assert_array_equal(b.P[2], one.P[0])
+    ok = rows != 2
+    s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
+    assert np.max(np.abs(aligned.local(a.x[ok], b.x[ok])) / s) < 1e-11
+    x, P, step, fs, setup = _aligned_step("iekf")
+    P[2] = -P[2]
+    with pytest.raises(np.linalg.LinAlgError):
+        mekf.update(x, P, step, rows, fs, setup)
+    with pytest.raises(np.linalg.LinAlgError):
+        compiled.update(x, P, step, rows, fs, setup)
