@@ -220,7 +220,7 @@ class Prepared:
         raise ValueError(f"no filter of type {kind!r}")
 
     def full_state_filter(self, kind: str):
-        """The filter of type ``kind`` with ``error_state: full``: the step the compiled kernels cover."""
+        """The filter of type ``kind`` with ``error_state: full`` (the FilterPy baseline's full-state EKF)."""
         import dataclasses
 
         return dataclasses.replace(self.filter(kind), error_state="full")

@@ -146,7 +146,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     K = s.steps
     k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
     for kind in cfg.filters:
-        fs = prep.full_state_filter(kind)
+        fs = prep.filter(kind)
         path = None
         for j in range(cfg.latency_candidates):
             posts, stp, iters, ok = _single_trial_path(prep, fs, j)
@@ -208,15 +208,16 @@ def _features(cfg: BenchConfig) -> list[Row]:
         cost: dict[str, dict[int, float]] = {k: {} for k in KERNELS}
         for N in cfg.feature_points:
             prep = prepare(scaling_scenario(cfg, kind, N))
-            fs, s = prep.full_state_filter(kind), prep.setup
+            fs, s = prep.filter(kind), prep.setup
             from .sections import _draws
-            from stereopose_mc.filters import relnav
+            from stereopose_mc.filters import estimators, relnav
 
             noisy, x0 = _draws(prep, trials)
             vis = prep.exact.visible[1]
             step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo),
                                           alpha=noisy.alpha[:, 1], visible=vis, t=prep.truth.t[1])  # fmt: skip
-            P0 = np.broadcast_to(np.diag(s.P0_diag), (trials.size,) + (s.x0.size,) * 2).copy()
+            P0 = np.broadcast_to(np.diag(s.P0_diag), (trials.size,) + (s.x0.size,) * 2)
+            P0 = estimators.initial_covariance(x0, P0, fs)
             for kernels in KERNELS:
                 sf = step_functions(kernels)
                 with np.errstate(all="ignore"):

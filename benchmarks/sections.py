@@ -214,12 +214,12 @@ def chunk_cost(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
 
 def _single_trial_path(prep: Prepared, fs, trial: int):
     """Posteriors ``[(x, P)]_k`` and step measurements of one trial run with ``B = 1``; and health."""
-    from stereopose_mc.filters import relnav
+    from stereopose_mc.filters import estimators, relnav
     from stereopose_mc.mc.trial import errors
 
     s, truth = prep.setup, prep.truth
     noisy, x0 = _draws(prep, np.array([trial]))
-    x, P = x0, np.diag(s.P0_diag)[None]
+    x, P = x0, estimators.initial_covariance(x0, np.diag(s.P0_diag)[None], fs)
     rows = np.arange(1)
     posts, steps, iters = [(x, P)], [None], []
     ok = True
@@ -228,9 +228,9 @@ def _single_trial_path(prep: Prepared, fs, trial: int):
         step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, k], vis, s.pseudo), alpha=noisy.alpha[:, k],
                                       visible=vis, t=truth.t[k])  # fmt: skip
         with np.errstate(all="ignore"):
-            xa, Pa = relnav.predict(x, P, truth.t[k - 1], fs, s)
+            xa, Pa = estimators.predict(x, P, truth.t[k - 1], fs, s)
             try:
-                u = relnav.update(xa, Pa, step, rows, fs, s)
+                u = estimators.update(xa, Pa, step, rows, fs, s)
             except np.linalg.LinAlgError:
                 return posts, steps, iters, False
         x, P = u.x, u.P
@@ -269,13 +269,13 @@ def step_latencies(sf, prep: Prepared, fs, posts, steps, k0: int, k1: int, reps:
 
 
 def latency(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
-    """Wall time of one ``relnav.predict`` + ``relnav.update`` with ``B = 1``, after convergence."""
+    """Wall time of one ``estimators.predict`` + ``estimators.update`` with ``B = 1``, after convergence."""
     with blas_limit(cfg.inproc_threads):
         return _latency(cfg)
 
 
 def _latency(cfg: BenchConfig) -> list[Row]:
-    from stereopose_mc.filters import relnav
+    from stereopose_mc.filters import estimators
 
     rows: list[Row] = []
     prep = prepare(scenario_dict(cfg))
@@ -284,7 +284,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
     N = s.n_points
     for kind in cfg.filters:
-        fs = prep.full_state_filter(kind)
+        fs = prep.filter(kind)
         trial = None
         for j in range(cfg.latency_candidates):
             posts, steps, iters, ok = _single_trial_path(prep, fs, j)
@@ -296,7 +296,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
                             note=f"every one of trials 0-{cfg.latency_candidates - 1} diverged"))  # fmt: skip
             continue
         log(f"latency: {kind}, trial {trial}, steps {k0}-{k1}, {cfg.latency_reps} repeats")
-        pred, upd = step_latencies(relnav, prep, fs, posts, steps, k0, k1, cfg.latency_reps)
+        pred, upd = step_latencies(estimators, prep, fs, posts, steps, k0, k1, cfg.latency_reps)
         tot = np.add(pred, upd)
         med, p99 = 1e3 * float(np.median(tot)), 1e3 * percentile(tot, 99)
         it = float(np.mean(iters[k0 - 1 : k1]))
@@ -335,7 +335,7 @@ def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             if not prep.exact.visible.all():
                 raise RuntimeError(f"scaling: with N={N} points on a {cfg.sphere_radius_m} m sphere some are not "
                                    "visible; the measurement size would vary")  # fmt: skip
-            fs, s = prep.full_state_filter(kind), prep.setup
+            fs, s = prep.filter(kind), prep.setup
             noisy, x0 = _draws(prep, trials)
             log(f"scaling: {kind}, N={N}, batch {trials.size}, {s.steps} steps")
 

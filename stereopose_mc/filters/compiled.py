@@ -12,6 +12,13 @@ work is done:
   (``core.kernels.update``): EKF, and IEKF with line search or plain Gauss-Newton steps
   (Levenberg-Marquardt runs ``relnav.update``); the gate's distances come from the
   compiled ``h``/``H`` and the numpy gating functions.
+
+Filters with the aligned error state (``error_state: aligned``, the default of the EKF,
+IEKF and MEKF; ``filters/mekf.py`` is their reference) run the same kernels in that
+chart (``core.kernels.aligned``): ``P- = Phi_e P Phi_e^T + T Q T^T`` on the sparse
+``Phi_e = T(x-) Phi S(x+)``, and the updates on the row-sparse ``H_e = H S`` with the reset
+``x+ = x- [+] e+`` (the EKF's iterated first update included). The attitude chart and the
+UKF keep their numpy step.
 """
 
 from __future__ import annotations
@@ -27,7 +34,17 @@ from ..core.orbit import leader_kinematics
 from . import estimators, relnav
 
 Array = NDArray[np.float64]
-COMPILED_KINDS = ("ekf", "iekf")  # filter types whose predict/update have compiled kernels
+COMPILED_KINDS = ("ekf", "iekf", "mekf")  # filter types whose predict/update have compiled kernels
+FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
+
+
+def chart_code(fs: FilterSetup) -> int | None:
+    """The kernels' ``chart`` of a filter: 0 the full state, 1 the aligned error state, None: no kernels."""
+    if fs.kind not in COMPILED_KINDS:
+        return None
+    if fs.kind == "mekf":  # always an error state (the attitude chart for anything but "aligned")
+        return 1 if fs.error_state == "aligned" else None
+    return {"full": 0, "aligned": 1}.get(fs.error_state)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -61,7 +78,8 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
     """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
-    if fs.kind not in COMPILED_KINDS or fs.error_state != "full":  # error-state filters keep their numpy step
+    chart = chart_code(fs)
+    if chart is None:  # the attitude chart and the UKF keep their numpy step
         return estimators.predict(x, P, t, fs, setup)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
@@ -71,38 +89,43 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     r, nd, ndd = _leader(setup.orbit, float(t), h, 2 * fs.substeps + 1)
     T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
     x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
+    if chart == 1:
+        from ..core.kernels import aligned as ka
+
+        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
 
-def measurement_model(setup: Setup, step: relnav.StepMeasurement):
-    """``relnav.measurement_model`` on the compiled ``h``/``H`` (dense ``H`` for ``core.kalman``)."""
-    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
-    vis = np.flatnonzero(step.visible).astype(np.int64)
+def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd: float, chart: int, ne: int):
+    """``h`` and the dense ``H`` (``b, m, ne``) at the prior, in the filter's coordinates (for the gate).
+
+    ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1: ``mekf.error_measurement`` at ``e = 0``.
+    """
+    from ..core.kernels import aligned as ka
+
     C = 9 if setup.disparity else 8
-    alpha_all = np.ascontiguousarray(step.alpha, dtype=float)
-    cols_cache: dict[int, Array] = {}
+    args = (vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha, nd, ndd, True)
+    if chart == 0:
+        hx, Hval = km.measure_batch(x, *args)
+        return hx, km.dense(Hval, km.measurement_columns(ne, vis, C, setup.pseudo), ne)
+    hx, Hval = ka.measure_batch(x, np.zeros((x.shape[0], ne)), *args)
+    return hx, ka.dense(Hval, ka.measurement_columns(ne, vis, C, setup.pseudo), ne)
 
-    def measure(x: Array, rows: Array, jac: bool = True):
-        x = np.ascontiguousarray(x, dtype=float)
-        n = x.shape[-1]
-        a = alpha_all[rows] if setup.pseudo else np.zeros((x.shape[0], 3))
-        hx, Hval = km.measure_batch(x, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
-                                    np.ascontiguousarray(a), nd, ndd, jac)  # fmt: skip
-        if not jac:
-            return hx, None
-        if n not in cols_cache:
-            cols_cache[n] = km.measurement_columns(n, vis, C, setup.pseudo)
-        return hx, km.dense(Hval, cols_cache[n], n)
 
-    return measure
+def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> dict | None:
+    """The iterated update's knobs at this step (``relnav.kalman_update``), or None for the EKF update."""
+    if not relnav.iterated_at(fs, setup, step):
+        return None
+    if fs.kind in ("ekf", "ukf"):  # first_update: iterated
+        return FIRST_ITERATED
+    return dict(tol=fs.tolerance, max_iter=fs.max_iterations, control=fs.step_control, stopping=fs.stopping)
 
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
-    """The measurement update of ``relnav.update``: compiled where ``supported``, else numpy."""
-    first = step.t <= setup.dt * (1 + 1e-9)
-    if supported(fs) and not (first and getattr(fs, "first_update", "ekf") == "iterated"):
-        return compiled_update(x, P, step, rows, fs, setup)
-    return estimators.update(x, P, step, rows, fs, setup)  # MEKF, UKF, LM step control, iterated first update
+    """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
+    if not supported(fs) or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
+        return estimators.update(x, P, step, rows, fs, setup)  # UKF, attitude chart, LM, full state's first iterated
+    return compiled_update(x, P, step, rows, fs, setup)
 
 
 def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
@@ -114,18 +137,21 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
 
 
 def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
-    """``relnav.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
+    """``estimators.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
 
-    A trial whose Cholesky factorization fails (``S`` or ``P-`` not numerically positive
-    definite, as in a filter that is losing track) is updated by ``relnav.update``, so it
-    meets numpy's solvers and their errors exactly as with ``--kernels numpy``.
+    The EKF or the IEKF as ``relnav.kalman_update`` chooses (``_iterated``). A trial whose
+    Cholesky factorization fails (``S`` or ``P-`` not numerically positive definite, as in a
+    filter that is losing track) is updated by ``estimators.update``, so it meets numpy's
+    solvers and their errors exactly as with ``--kernels numpy``.
     """
+    from ..core.kernels import aligned as ka
     from ..core.kernels import update as ku
     from . import gating
 
+    chart, iterated = chart_code(fs), _iterated(fs, setup, step)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
-    b, n = x.shape
+    b, ne = P.shape[:2]
     _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
     vis = np.flatnonzero(step.visible).astype(np.int64)
     nvis, C = vis.size, (9 if setup.disparity else 8)
@@ -133,27 +159,27 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     m = y.shape[-1]
     R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(
         fs, setup, nvis, None if step.alpha_var is None else step.alpha_var[rows]), (b, m)), dtype=float)  # fmt: skip
+    alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
     keep = None if step.feature_mask is None else step.feature_mask[rows]
     rejected = np.zeros(b, int)
     if fs.gate_probability is not None and nvis:
-        hx, H = measurement_model(setup, step)(x, rows, jac=True)
+        hx, H = linearized(x, alpha, vis, setup, nd, ndd, chart, ne)
         d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
         keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
     used = np.full(b, nvis) if keep is None else keep.sum(axis=-1)
     mask = _row_mask(keep, b, m, C)
-    alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
-    cols = km.measurement_columns(n, vis, C, setup.pseudo)
+    cols = (ka if chart == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
-            nd, ndd, cols)  # fmt: skip
-    if fs.kind == "ekf":
+            nd, ndd, cols, chart)  # fmt: skip
+    if iterated is None:
         xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
         its, conv = np.ones(b, int), np.ones(b, bool)
     else:
-        xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(
-            *args, fs.tolerance, fs.max_iterations, ku.CONTROL[fs.step_control], ku.STOPPING[fs.stopping], 10)
+        xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
+            ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
     if not ok.all():  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
-        u = _patch(u, ~ok, relnav.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
+        u = _patch(u, ~ok, estimators.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
     return u
 
 
@@ -170,9 +196,11 @@ def _patch(u, bad: Array, v):
 
 
 def supported(fs: FilterSetup) -> bool:
-    """Filters the compiled update covers (others run ``relnav.update``): EKF, IEKF with line search or none."""
+    """Filters the compiled update covers (others run ``estimators.update``): the EKF and the IEKF in the full
+    state or the aligned error state and the aligned MEKF, their iterated updates with line search or none."""
     from ..core.kernels import update as ku
 
-    if fs.error_state != "full":  # the compiled kernels carry the full-state covariance only
+    if chart_code(fs) is None:
         return False
-    return fs.kind == "ekf" or (fs.kind == "iekf" and fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)
+    iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)
+    return not iterated or (fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)

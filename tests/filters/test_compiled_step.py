@@ -1,9 +1,11 @@
 """Whole trials through ``--kernels numpy`` and ``--kernels compiled`` agree (issue 14).
 
 The compiled step computes the same equations in another order, so the two paths differ
-by round-off. Required, at every step of whole case-B trials (both filters as
-configured, and the gated filters of case B with tracker dropouts and outliers), from the
-same posterior, for the trials
+by round-off. Required, in the full state and in the aligned error state (there the
+states are compared in the error state, ``aligned.local``), at every step of whole case-B
+trials (both filters as configured, the gated filters of case B with tracker dropouts and
+outliers, the aligned MEKF and the EKF's iterated first update), from the same posterior,
+for the trials
 still well inside the divergence bounds: the next posterior states within 1e-8 of the
 posterior standard deviation and covariances within 1e-8 relative (``P_ij`` against
 ``sqrt(P_ii P_jj)``). The one exception is the first update or two of a trial (filter R
@@ -30,6 +32,7 @@ import yaml
 
 from stereopose_mc.config import load_scenario_text
 from stereopose_mc.config.resolve import filter_setup_of, setup_of
+from stereopose_mc.core import aligned
 from stereopose_mc.mc.trial import Bounds, run_chunk
 from stereopose_mc.sim import measurements as meas
 from stereopose_mc.sim.truth import simulate_truth
@@ -37,12 +40,14 @@ from stereopose_mc.sim.truth import simulate_truth
 from scenarios import scenario_dict
 
 
-def _prepared(case="caseB", **overrides):
+def _prepared(case="caseB", error_state="full", **overrides):
     scn = load_scenario_text(yaml.safe_dump(scenario_dict(case, **overrides)))
     setup = setup_of(scn)
     truth = simulate_truth(setup)
-    # the full-state step: the one the compiled kernels compute (error_state: full)
-    fss = [dataclasses.replace(filter_setup_of(f, setup), error_state="full") for f in scn.filters]
+    # the full-state step or the aligned error state (the default): both have compiled kernels (None: as configured)
+    fss = [filter_setup_of(f, setup) for f in scn.filters]
+    if error_state is not None:
+        fss = [dataclasses.replace(f, error_state=error_state) for f in fss]
     return scn, setup, truth, meas.noise_free(setup, truth), fss
 
 
@@ -50,9 +55,9 @@ class _Both:
     """A step whose ``predict``/``update`` run both paths, record their difference, return numpy's."""
 
     def __init__(self):
-        from stereopose_mc.filters import compiled, relnav
+        from stereopose_mc.filters import compiled, estimators
 
-        self.np, self.nb = relnav, compiled
+        self.np, self.nb = estimators, compiled
         self.dx, self.dP, self.floor, self.floorP, self.kind = [], [], [], [], []
 
     @staticmethod
@@ -62,12 +67,20 @@ class _Both:
         return np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2)) & (np.abs(x).max(-1) < 1e4) & (d > 0).all(-1) \
             & (d.max(-1) < 1e4)  # fmt: skip
 
+    @staticmethod
+    def deviation(xa, xb, ne):
+        """``xb - xa`` in the filter's coordinates (``ne``): the full state, or the aligned error state at ``xa``."""
+        return xb - xa if xa.shape[-1] == ne else aligned.local(xa, xb)
+
     def _record(self, xa, Pa, xb, Pb):
         ok = self.sane(xa, Pa)
         xa, Pa, xb, Pb = xa[ok], Pa[ok], xb[ok], Pb[ok]
         s = np.sqrt(np.diagonal(Pa, axis1=-2, axis2=-1))
-        s = np.maximum(s, 1e6 * np.finfo(float).eps * np.abs(xa))  # a sigma below the state's own round-off: that
-        self.dx.append(np.max(np.abs(xa - xb) / s, initial=0.0))
+        scale = np.abs(xa)
+        if xa.shape[-1] != Pa.shape[-1]:  # aligned: e_c, e_cdot, e_omega ~ rho, rho_dot, omega; delta ~ |q| = 1
+            scale = np.concatenate([scale[:, :9], np.ones((len(xa), 3)), scale[:, 13:]], axis=-1)
+        s = np.maximum(s, 1e6 * np.finfo(float).eps * scale)  # a sigma below the state's own round-off: that
+        self.dx.append(np.max(np.abs(self.deviation(xa, xb, Pa.shape[-1])) / s, initial=0.0))
         self.dP.append(np.max(np.abs(Pa - Pb) / (s[..., :, None] * s[..., None, :]), initial=0.0))
 
     def predict(self, x, P, t, fs, setup):
@@ -84,7 +97,7 @@ class _Both:
         self.kind.append("update")
         ok = self.sane(a.x, a.P)
         s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
-        self.floor.append(np.max(np.abs(a.x[ok] - ulp.x[ok]) / s, initial=0.0))
+        self.floor.append(np.max(np.abs(self.deviation(a.x[ok], ulp.x[ok], s.shape[-1])) / s, initial=0.0))
         self.floorP.append(np.max(np.abs(a.P[ok] - ulp.P[ok]) / (s[..., :, None] * s[..., None, :]), initial=0.0))
         np.testing.assert_array_equal(a.iterations, b.iterations)
         return a
@@ -95,16 +108,33 @@ SHORT = {"time": {"dt_s": 1.0, "duration_s": 40.0, "error_window_start_s": 5.0}}
 FREE = {**SHORT, "filters": [{"type": "iekf"}, {"type": "ekf", "first_update": "iterated"}]}
 
 
+@pytest.mark.parametrize("error_state", ["full", "aligned"])
 @pytest.mark.parametrize("case", ["caseB", "caseB-outliers"])  # the latter: tracker dropouts, outliers, gating
-def test_every_step_of_whole_trials_agrees(monkeypatch, case):
+def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
     from stereopose_mc.mc import trial
 
     both = _Both()
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
-    scn, setup, truth, exact, filters = _prepared(case=case, **SHORT)
+    scn, setup, truth, exact, filters = _prepared(case=case, error_state=error_state, **SHORT)
     if case == "caseB-outliers":  # the gated filters (the ungated ones are hit by 5 % outliers: see the docstring)
         filters = [f for f in filters if f.gate_probability is not None]
     run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
+    _steps_agree(both, filters)
+
+
+def test_every_step_of_the_aligned_mekf_and_iterated_first_update_agrees(monkeypatch):
+    """The MEKF (aligned chart, iterated) and the EKF's iterated first update run the compiled kernels too."""
+    from stereopose_mc.mc import trial
+
+    both = _Both()
+    monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
+    over = {**SHORT, "filters": [{"type": "mekf"}, {"type": "ekf", "first_update": "iterated"}]}
+    scn, setup, truth, exact, filters = _prepared(error_state="aligned", **over)
+    run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
+    _steps_agree(both, filters)
+
+
+def _steps_agree(both, filters):
     assert len(both.dx) > 100  # predict and update calls of both filters over the steps
     kind = np.array(both.kind)
     dx, dP = np.array(both.dx), np.array(both.dP)
@@ -133,15 +163,17 @@ def _spread(case_overrides, trials):
     for ra, rb in zip(a.runs, b.runs):
         ok = (ra.diverged_step < 0) & (rb.diverged_step < 0)
         sig = np.sqrt(np.diagonal(ra.P_final[ok], axis1=-2, axis2=-1))
-        out = max(out, float(np.max(np.abs(ra.x_final[ok] - rb.x_final[ok]) / sig, initial=0.0)))
+        dev = _Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1])
+        out = max(out, float(np.max(np.abs(dev) / sig, initial=0.0)))
     return out
 
 
-def test_free_running_trials_agree_within_the_round_off_spread():
+@pytest.mark.parametrize("error_state", ["full", "aligned"])
+def test_free_running_trials_agree_within_the_round_off_spread(error_state):
     trials = np.arange(6)
-    spread = _spread(FREE, trials)
+    spread = _spread({**FREE, "error_state": error_state}, trials)
     assert 1e-10 < spread < 1e-2  # round-off alone moves the numpy path this much
-    _agree(FREE, trials, tol=10 * spread)
+    _agree({**FREE, "error_state": error_state}, trials, tol=10 * spread)
 
 
 def _agree(case_overrides, trials, tol):
@@ -153,7 +185,7 @@ def _agree(case_overrides, trials, tol):
         ok = ra.diverged_step < 0
         assert ok.any()
         sig = np.sqrt(np.diagonal(ra.P_final[ok], axis1=-2, axis2=-1))
-        assert np.max(np.abs(ra.x_final[ok] - rb.x_final[ok]) / sig) < tol, ra.label
+        assert np.max(np.abs(_Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1])) / sig) < tol, ra.label
         Pa, Pb = ra.P_final[ok], rb.P_final[ok]
         scale = np.sqrt(np.diagonal(Pa, axis1=-2, axis2=-1))
         rel = np.abs(Pa - Pb) / (scale[..., :, None] * scale[..., None, :])
@@ -162,13 +194,90 @@ def _agree(case_overrides, trials, tol):
 
 
 def test_filter_types_without_kernels_fall_back_to_their_numpy_step_exactly():
-    """MEKF, UKF (issue 10) have no compiled kernels: ``--kernels compiled`` runs their own numpy step, bit for bit."""
+    """The attitude chart and the UKF have no compiled kernels: ``--kernels compiled`` runs their own numpy step,
+    bit for bit (Levenberg-Marquardt runs the numpy update after the compiled prediction)."""
     over = {"time": {"dt_s": 1.0, "duration_s": 8.0, "error_window_start_s": 2.0},
-            "filters": [{"type": "mekf"}, {"type": "ukf", "first_update": "iterated"}]}  # fmt: skip
-    scn, setup, truth, exact, filters = _prepared(**over)
+            "filters": [{"type": "mekf", "error_state": "attitude"}, {"type": "ukf", "first_update": "iterated"},
+                        {"type": "iekf", "error_state": "attitude"}]}  # fmt: skip
+    scn, setup, truth, exact, filters = _prepared(error_state=None, **over)
     a = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="numpy")
     b = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="compiled")
     for ra, rb in zip(a.runs, b.runs):
-        assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/UKF step
+        assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/UKF/IEKF step
         np.testing.assert_array_equal(ra.x_final, rb.x_final)
         np.testing.assert_array_equal(ra.errors, rb.errors)
+
+
+def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
+    """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R."""
+    from stereopose_mc.filters import relnav
+
+    scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
+    loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
+    fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
+                             stopping=stopping)  # fmt: skip
+    rng = np.random.default_rng(4)
+    ne = setup.x0.size - 1
+    A = 0.02 * rng.normal(size=(B, ne, ne))
+    P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(ne)
+    x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), np.einsum("bij,bj->bi", np.linalg.cholesky(P),
+                                                                           rng.normal(size=(B, ne))))  # fmt: skip
+    vis = exact.visible[k]
+    y = exact.y[k] + 1e-3 * rng.normal(size=(B,) + exact.y[k].shape)
+    keep = rng.random((B, vis.sum())) > 0.2
+    keep[0, 1] = True
+    if masked:
+        y[0, np.flatnonzero(vis)[1]] += 0.5  # an outlier for the gate
+    alpha = np.broadcast_to(truth.alpha[k], (B, 3))
+    step = relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), alpha, vis, truth.t[k],
+                                  feature_mask=keep if masked else None)  # fmt: skip
+    return x, P, step, fs, setup
+
+
+@pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
+@pytest.mark.parametrize("masked", [False, True])
+def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked):
+    """One aligned update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
+    the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
+    from stereopose_mc.filters import compiled, mekf
+
+    x, P, step, fs, setup = _aligned_step(kind, stopping, masked)
+    vis, B = step.visible, len(x)
+    rows = np.arange(B)
+    a = mekf.update(x, P, step, rows, fs, setup)
+    b = compiled.update(x, P, step, rows, fs, setup)
+    s = np.sqrt(np.diagonal(a.P, axis1=-2, axis2=-1))
+    assert np.max(np.abs(aligned.local(a.x, b.x)) / s) < 1e-11
+    assert np.max(np.abs(a.P - b.P) / (s[:, :, None] * s[:, None, :])) < 1e-11
+    np.testing.assert_allclose(b.nis, a.nis, rtol=1e-10)
+    np.testing.assert_allclose(b.nu, a.nu, rtol=0, atol=1e-14)
+    for f in ("iterations", "converged", "rejected", "features_used"):
+        np.testing.assert_array_equal(getattr(b, f), getattr(a, f), f)
+    if masked:
+        assert a.rejected[0] >= 1 and (a.features_used < vis.sum()).any()
+    if kind == "iekf":
+        assert (a.iterations > 1).any()
+
+
+def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
+    """A trial with an indefinite covariance: the EKF kernel's Cholesky of ``S`` fails, that trial is updated by
+    ``mekf.update`` (numpy's solver, which does not factorize), the others by the kernel; the IEKF raises as numpy."""
+    from stereopose_mc.filters import compiled, mekf
+
+    x, P, step, fs, setup = _aligned_step("ekf")
+    P[2] = -P[2]
+    rows = np.arange(len(x))
+    a = mekf.update(x, P, step, rows, fs, setup)
+    b = compiled.update(x, P, step, rows, fs, setup)
+    one = mekf.update(x[2:3], P[2:3], step, rows[2:3], fs, setup)
+    np.testing.assert_array_equal(b.x[2], one.x[0])
+    np.testing.assert_array_equal(b.P[2], one.P[0])
+    ok = rows != 2
+    s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
+    assert np.max(np.abs(aligned.local(a.x[ok], b.x[ok])) / s) < 1e-11
+    x, P, step, fs, setup = _aligned_step("iekf")
+    P[2] = -P[2]
+    with pytest.raises(np.linalg.LinAlgError):
+        mekf.update(x, P, step, rows, fs, setup)
+    with pytest.raises(np.linalg.LinAlgError):
+        compiled.update(x, P, step, rows, fs, setup)

@@ -1,5 +1,5 @@
 """``--kernels compiled``: whole trials agree with the numpy reference; threads, jobs and chunk sizes
-give the same bytes."""
+give the same bytes (case B's filters in the aligned error state, their default, and in the full state)."""
 
 from __future__ import annotations
 
@@ -47,6 +47,15 @@ def test_compiled_same_bytes_for_any_jobs_chunk_and_backend(scenario, compiled_r
     run_ok("run", scenario, "--out", out, "--jobs", jobs, "--chunk-size", chunk, "--kernels", "compiled",
            "--backend", backend)  # fmt: skip
     same_bytes(compiled_ref, out)
+
+
+def test_compiled_full_state_same_bytes_for_any_jobs_and_chunk(tmp_path):
+    full = [{"type": "iekf", "error_state": "full"}, {"type": "ekf", "error_state": "full"}]
+    scn = write_scenario(tmp_path / "full.yaml", trials=8, time=SHORT, filters=full)
+    a, b = tmp_path / "a", tmp_path / "b"
+    run_ok("run", scn, "--out", a, "--jobs", 1, "--chunk-size", 8, "--kernels", "compiled")
+    run_ok("run", scn, "--out", b, "--jobs", 2, "--chunk-size", 3, "--kernels", "compiled")
+    same_bytes(a, b)
 
 
 def test_auto_backend_picks_threads_for_compiled_and_inline_for_one_chunk():

@@ -3,5 +3,8 @@
 Importing this package compiles nothing: the kernels are compiled on first call (or
 loaded from Numba's on-disk cache, ``cache=True``). ``core/kernels/model.py`` holds
 ``f``, RK4, ``F``, the transition matrix and the block-structured covariance predict,
-``h`` and ``H`` per feature and the inertia pseudo-measurement rows.
+``h`` and ``H`` per feature and the inertia pseudo-measurement rows;
+``core/kernels/aligned.py`` the aligned error state (chart, ``S``, ``T``, the error-state
+covariance predict, the row-sparse ``H_e``); ``core/kernels/update.py`` the EKF and IEKF
+updates in either chart.
 """

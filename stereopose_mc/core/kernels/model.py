@@ -34,6 +34,38 @@ NNZ = 16  # non-zero columns of one measurement row
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 
+@njit(**_JIT)
+def _mirror_lower(A):
+    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            A[j, i] = A[i, j]
+
+
+@njit(**_JIT)
+def _combine(out, lo, hi, M, coef, k0, k1, sign):
+    """``out[lo:hi] += sign * sum_{k0 <= k < k1} coef[k] M[k, lo:hi]``, four rows of ``M`` per pass.
+
+    The row operation of the factorizations, triangular solves and ``X^T X`` products below:
+    contiguous (vectorizable without reassociating a sum), and ``out`` is read and written a
+    quarter as often as with one axpy per row; a group of four zero coefficients is skipped.
+    """
+    k = k0
+    while k + 4 <= k1:
+        a0, a1, a2, a3 = sign * coef[k], sign * coef[k + 1], sign * coef[k + 2], sign * coef[k + 3]
+        if a0 != 0.0 or a1 != 0.0 or a2 != 0.0 or a3 != 0.0:
+            for c in range(lo, hi):
+                out[c] += (a0 * M[k, c] + a1 * M[k + 1, c]) + (a2 * M[k + 2, c] + a3 * M[k + 3, c])
+        k += 4
+    while k < k1:
+        a = sign * coef[k]
+        if a != 0.0:
+            for c in range(lo, hi):
+                out[c] += a * M[k, c]
+        k += 1
+
+
 # --- attitude building blocks ------------------------------------------------------
 
 
@@ -516,27 +548,31 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
 
 
 @njit(**_JIT)
-def measurement_columns(n, vis, channels, pseudo):
-    """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``."""
+def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
+    """Column indices ``(m, 16)`` of a row-sparse ``H``: each row of visible feature ``f`` holds the
+    columns ``before``, then its point's 3 (``point0 + 3 vis[f]``), then ``after``; the 3 pseudo rows
+    hold ``pseudo_cols``; the rest is padding (column 0, value 0)."""
     nv = vis.shape[0]
     m = nv * channels + (3 if pseudo else 0)
     cols = np.zeros((m, NNZ), np.int64)
-    for f in range(nv):
-        p0 = 13 + 3 * vis[f]
-        for c in range(channels):
-            row = f * channels + c
-            for j in range(13):
-                cols[row, j] = j
-            for j in range(3):
-                cols[row, 13 + j] = p0 + j
-    if pseudo:
-        for i in range(3):
-            row = nv * channels + i
-            for j in range(7):
-                cols[row, j] = 6 + j
-            cols[row, 7] = n - 2
-            cols[row, 8] = n - 1
+    nb = before.shape[0]
+    for row in range(nv * channels):
+        p0 = point0 + 3 * vis[row // channels]
+        cols[row, :nb] = before
+        for j in range(3):
+            cols[row, nb + j] = p0 + j
+        cols[row, nb + 3 : nb + 3 + after.shape[0]] = after
+    for i in range(3 if pseudo else 0):
+        cols[nv * channels + i, : pseudo_cols.shape[0]] = pseudo_cols
     return cols
+
+
+@njit(**_JIT)
+def measurement_columns(n, vis, channels, pseudo):
+    """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``: a feature's rows see
+    ``rho, rho_dot, omega, q`` and its point, the pseudo rows ``omega, q, k``."""
+    k = np.array([n - 2, n - 1])
+    return row_columns(vis, channels, np.arange(13), 13, np.arange(0), np.concatenate((np.arange(6, 13), k)), pseudo)
 
 
 @njit(**_JIT)

@@ -11,6 +11,12 @@ factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the op
 construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
 line search (MAP cost, step halving) and unit-free stopping test run per trial.
 
+Both kernels take the filter's ``chart``: 0, the full state (``filters.relnav``: ``x + dx``,
+quaternion renormalized); 1, the aligned error state (``filters.mekf`` with
+``core.aligned``: prior ``e = 0`` with the error-state ``P``, ``h(x- [+] e)``, the row-sparse
+``H_e`` of ``core.kernels.aligned`` whose virtual columns are served by the point sums
+appended to ``P`` or ``L`` (``_with_virtual``), reset ``x+ = x- [+] e+``).
+
 A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
 ``h = y`` and ``H = 0`` on that row.
@@ -26,7 +32,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _measure_one
+from .aligned import E_POINTS, _chart, _measure_aligned, augment
+from .model import NNZ, _combine, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -35,43 +42,29 @@ CONTROL = {"none": 0, "line_search": 1}
 
 
 @njit(**_JIT)
-def _mirror_lower(A):
-    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            A[j, i] = A[i, j]
-
-
-@njit(**_JIT)
 def _cholesky(A, L):
     """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
 
-    Right-looking on ``U = L^T`` held by rows, so that the trailing update is a contiguous
-    axpy per row (vectorizable without reassociating sums).
+    Left-looking on ``U = L^T``, held by rows in the upper triangle of ``L`` (transposed at the
+    end): row ``j`` of ``U`` is row ``j`` of ``A``'s upper triangle minus a combination of the
+    rows above it (``_combine``), divided by the square root of its pivot.
     """
     n = A.shape[0]
-    U = np.empty((n, n))
     for i in range(n):
         for j in range(i, n):
-            U[i, j] = A[j, i]
-    for k in range(n):
-        d = U[k, k]
+            L[i, j] = A[j, i]
+    for j in range(n):
+        _combine(L[j], j, n, L, L[:, j], 0, j, -1.0)
+        d = L[j, j]
         if not d > 0.0:
             return False
         d = math.sqrt(d)
-        for j in range(k, n):
-            U[k, j] /= d
-        for i in range(k + 1, n):
-            a = U[k, i]
-            if a != 0.0:
-                for j in range(i, n):
-                    U[i, j] -= a * U[k, j]
+        for c in range(j, n):
+            L[j, c] /= d
     for i in range(n):
-        for j in range(i + 1):
-            L[i, j] = U[j, i]
-        for j in range(i + 1, n):
-            L[i, j] = 0.0
+        for j in range(i):
+            L[i, j] = L[j, i]
+            L[j, i] = 0.0
     return True
 
 
@@ -102,43 +95,100 @@ def _masked(hx, Hval, y, mask):
 
 
 @njit(**_JIT)
-def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols):
-    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x + K nu``, ``P+``.
+def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D,
+                dD):  # fmt: skip
+    """``h`` and the row-sparse ``H`` of one trial at ``x- [+] e`` in the filter's coordinates.
 
-    ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its optimal gain, as
-    ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to round-off, exactly
-    symmetric, at a third of the cost.
+    ``chart`` 0: the full state, ``xt = x- + e``, ``H`` of ``model._measure_one``; 1: the aligned
+    error state, ``xt = aligned.chart(x-, e)``, ``H_e`` of ``aligned._measure_aligned``.
+    """
+    if chart == 0:
+        for i in range(xp.shape[0]):
+            xt[i] = xp[i] + e[i]
+        _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    else:
+        _measure_aligned(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt,
+                         D, dD)  # fmt: skip
 
-    Returns ``(x+, P+, nu, nis, ok)``; the quaternion of ``x+`` is renormalized.
+
+@njit(**_JIT)
+def _reset(chart, xp, e, out):
+    """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), or ``aligned.chart``."""
+    if chart == 0:
+        for i in range(xp.shape[0]):
+            out[i] = xp[i] + e[i]
+        _normalize_q(out)
+    else:
+        _chart(xp, e, out, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+
+
+@njit(**_JIT)
+def _with_virtual(chart, M, Maug):
+    """``M`` with, in the aligned chart, the rows of the virtual columns appended (``aligned.augment``)."""
+    if chart == 0:
+        for i in range(M.shape[0]):
+            for j in range(M.shape[1]):
+                Maug[i, j] = M[i, j]
+    else:
+        augment(M, Maug)
+
+
+@njit(**_JIT)
+def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart):
+    """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
+
+    ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
+    of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
+    ``x+ = x [+] e+``). ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its
+    optimal gain, as ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to
+    round-off, exactly symmetric, at a third of the cost.
+
+    Returns ``(x+, P+, nu, nis, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
     B, n = x.shape
+    ne = P.shape[1]
+    nv = ne + (3 if chart == 1 else 0)  # columns of H, virtual ones included
     m = y.shape[1]
     xo = np.empty((B, n))
-    Po = np.empty((B, n, n))
+    Po = np.empty((B, ne, ne))
     nu = np.empty((B, m))
     nis = np.empty(B)
     ok = np.ones(B, np.bool_)
     hx = np.empty(m)
     Hval = np.zeros((m, NNZ))
-    HP = np.empty((m, n))
+    Paug = np.empty((nv, ne))
+    HP = np.empty((m, nv))
     S = np.empty((m, m))
     Ls = np.empty((m, m))
-    Z = np.empty((m, n + 1))
+    Z = np.empty((m, ne + 1))
+    e = np.zeros(ne)
+    xt = np.empty(n)
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
-        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        for i in range(ne):
+            e[i] = 0.0
+        _measure_at(chart, x[b], e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                    D, dD)  # fmt: skip
         _masked(hx, Hval, y[b], mask[b])
+        _with_virtual(chart, P[b], Paug)
         for r in range(m):
             nu[b, r] = y[b, r] - hx[r]
-            for j in range(n):
+            for j in range(ne):
                 HP[r, j] = 0.0
             for k in range(NNZ):
                 h = Hval[r, k]
                 if h != 0.0:
                     c = cols[r, k]
-                    for j in range(n):
-                        HP[r, j] += h * P[b, c, j]
+                    for j in range(ne):
+                        HP[r, j] += h * Paug[c, j]
+        if chart == 1:  # H P's virtual columns: the sums over the points
+            for r in range(m):
+                for a in range(3):
+                    s = 0.0
+                    for p in range((ne - 14) // 3):
+                        s += HP[r, E_POINTS + 3 * p + a]
+                    HP[r, ne + a] = s
         for r in range(m):
             for q in range(r + 1):
                 s = 0.0
@@ -149,39 +199,29 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
         if not _cholesky(S, Ls):
             ok[b] = False
             continue
-        # W = Ls^-1 [H P | nu] (forward substitution, row axpys): with K = P H^T S^-1,
+        # W = Ls^-1 [H P | nu] (forward substitution by rows): with K = P H^T S^-1,
         # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
         # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
         for r in range(m):
-            for j in range(n):
+            for j in range(ne):
                 Z[r, j] = HP[r, j]
-            Z[r, n] = nu[b, r]
-            for k in range(r):
-                a = Ls[r, k]
-                for j in range(n + 1):
-                    Z[r, j] -= a * Z[k, j]
+            Z[r, ne] = nu[b, r]
+            _combine(Z[r], 0, ne + 1, Z, Ls[r], 0, r, -1.0)
             d = Ls[r, r]
-            for j in range(n + 1):
+            for j in range(ne + 1):
                 Z[r, j] /= d
         v = 0.0
-        for i in range(n):
-            xo[b, i] = x[b, i]
+        for r in range(m):
+            v += Z[r, ne] * Z[r, ne]
+        _combine(e, 0, ne, Z, Z[:, ne], 0, m, 1.0)
         Pb = Po[b]
-        for i in range(n):
+        for i in range(ne):
             for j in range(i + 1):
                 Pb[i, j] = P[b, i, j]
-        for r in range(m):
-            a = Z[r, n]
-            v += a * a
-            for i in range(n):
-                xo[b, i] += Z[r, i] * a
-                c = Z[r, i]
-                if c != 0.0:
-                    for j in range(i + 1):
-                        Pb[i, j] -= c * Z[r, j]
+            _combine(Pb[i], 0, i + 1, Z, Z[:, i], 0, m, -1.0)
         _mirror_lower(Pb)
         nis[b] = v
-        _normalize_q(xo[b])
+        _reset(chart, x[b], e, xo[b])
     return xo, Po, nu, nis, ok
 
 
@@ -196,37 +236,36 @@ def _normalize_q(x):
 def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
 
-    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular) and
-    ``A += Hw[r]^T Hw[r]`` on the lower triangle, contiguous inner loops.
+    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
+    past ``n``, those of virtual columns, ``_with_virtual``, are read in full); then the lower
+    triangle of ``A`` row by row, ``A[i, :i+1] = I + sum_r Hw[r, i] Hw[r, :i+1]`` (``_combine``).
     """
     m, n = Hw.shape
-    for i in range(n):
-        for j in range(i + 1):
-            A[i, j] = 0.0
-        A[i, i] = 1.0
     for r in range(m):
         rw[r] = (yb[r] - hx[r]) * rws[r]
         for j in range(n):
             Hw[r, j] = 0.0
-        for k in range(NNZ):
-            h = Hval[r, k] * rws[r]
-            if h != 0.0:
-                c = cols[r, k]
-                for j in range(c + 1):
-                    Hw[r, j] += h * L[c, j]
-        for i in range(n):
-            a = Hw[r, i]
-            if a != 0.0:
-                for j in range(i + 1):
-                    A[i, j] += a * Hw[r, j]
+        for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
+            s = rws[r]
+            h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
+            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
+                c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
+                for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
+                    Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+    for i in range(n):
+        for j in range(i + 1):
+            A[i, j] = 0.0
+        A[i, i] = 1.0
+        _combine(A[i], 0, i + 1, Hw, Hw[:, i], 0, m, 1.0)
     _mirror_lower(A)
 
 
 @njit(**_JIT)
-def _cost_at(z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, xt, hx, Hdummy, D, dD):
-    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- + L z))|^2`` (``h`` only)."""
-    _to_x(xp, L, z, xt)
-    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, D, dD)
+def _cost_at(chart, z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, e, xt, hx,
+             Hdummy, D, dD):  # fmt: skip
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2`` (``h`` only)."""
+    _lower_mul(L, z, e)
+    _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, xt, D, dD)
     c = 0.0
     for i in range(z.shape[0]):
         c += z[i] * z[i]
@@ -262,47 +301,41 @@ def _posterior_covariance(L, LA, out, X):
     for i in range(n):
         for j in range(n):
             X[i, j] = L[j, i]
-        for k in range(i):
-            a = LA[i, k]
-            for j in range(n):
-                X[i, j] -= a * X[k, j]
+        _combine(X[i], 0, n, X, LA[i], 0, i, -1.0)
         d = LA[i, i]
         for j in range(n):
             X[i, j] /= d
     for i in range(n):
         for j in range(i + 1):
             out[i, j] = 0.0
-    for k in range(n):
-        for i in range(n):
-            a = X[k, i]
-            if a != 0.0:
-                for j in range(i + 1):
-                    out[i, j] += a * X[k, j]
+        _combine(out[i], 0, i + 1, X, X[:, i], 0, n, 1.0)
     _mirror_lower(out)
 
 
 @njit(**_JIT)
-def _to_x(xp, L, z, out):
-    """``out = x- + L z`` (``L`` lower triangular)."""
-    n = xp.shape[0]
-    for i in range(n):
-        s = xp[i]
+def _lower_mul(L, z, out):
+    """``out = L z`` (``L`` lower triangular)."""
+    for i in range(L.shape[0]):
+        s = 0.0
         for j in range(i + 1):
             s += L[i, j] * z[j]
         out[i] = s
 
 
 @njit(**_JIT)
-def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols,
+def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
                       tol, max_iter, control, stopping, max_halvings):  # fmt: skip
-    """Gauss-Newton IEKF in whitened coordinates ``x = x- + L z`` (``kalman.iekf_update``), per trial.
+    """Gauss-Newton IEKF in whitened coordinates ``x = x- [+] L z`` (``kalman.iekf_update``), per trial.
 
-    ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw.
-    Returns ``(x+, P+, nu, nis, iterations, converged, ok)``; the quaternion of ``x+`` is renormalized.
+    ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
+    of the aligned error state, as ``mekf.update``); ``control``: 0 none, 1 line search;
+    ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
+    iterations, converged, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
-    B, n = x.shape
+    B, nx = x.shape
+    n = P.shape[1]  # the filter's coordinates: the full state, or the error state
     m = y.shape[1]
-    xo = np.empty((B, n))
+    xo = np.empty((B, nx))
     Po = np.empty((B, n, n))
     nu = np.empty((B, m))
     nis = np.empty(B)
@@ -313,6 +346,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Hval = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
     L = np.empty((n, n))
+    Laug = np.empty((n + (3 if chart == 1 else 0), n))
     Hw = np.empty((m, n))
     rw = np.empty(m)
     v = np.empty(m)
@@ -325,8 +359,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     zt = np.empty(n)
     d = np.empty(n)
     g = np.empty(n)
-    xt = np.empty(n)
+    xt = np.empty(nx)
     dx = np.empty(n)
+    e = np.empty(n)
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
@@ -339,9 +374,13 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         if not _cholesky(P[b], L):
             ok[b] = False
             continue
-        _measure_one(xp, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+        _with_virtual(chart, L, Laug)
+        for i in range(n):
+            e[i] = 0.0
+        _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                    D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
-        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -386,8 +425,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 for _h in range(max_halvings + 1):
                     for i in range(n):
                         zt[i] = z[i] + a * d[i]
-                    ct = _cost_at(zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                                  xt, hx, Hdummy, D, dD)  # fmt: skip
+                    ct = _cost_at(chart, zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd,
+                                  ndd, e, xt, hx, Hdummy, D, dD)  # fmt: skip
                     if math.isfinite(ct) and ct <= cost:
                         accepted = True
                         c_new = ct
@@ -437,15 +476,16 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 conv[b] = True
             if small or (control == 1 and not accepted) or it == max_iter - 1:
                 break
-            _to_x(xp, L, z, xt)
-            _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, D, dD)
+            _lower_mul(L, z, e)
+            _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
+                        D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
-            _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         if failed or not _cholesky(Afin, LA):
             ok[b] = False
             continue
-        _to_x(xp, L, z, xo[b])
-        _normalize_q(xo[b])
+        _lower_mul(L, z, e)
+        _reset(chart, xp, e, xo[b])
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
         _posterior_covariance(L, LA, Po[b], T)

@@ -1,0 +1,492 @@
+"""Compiled (Numba) twins of ``core.aligned`` and of the aligned error-state step of ``filters/mekf.py``.
+
+The numpy functions are the reference (their docstrings give the equations); here, one
+trial at a time, float64, ``nogil``, ``cache=True``:
+
+- ``chart_batch``, ``chart_jacobian_batch`` (``S = dx/de`` at any ``e``), ``error_map_batch``
+  (``T = de/dx``): ``core.aligned.chart``, ``chart_jacobian``, ``error_map``;
+- ``predict_covariance_batch``: ``P- = Phi_e P Phi_e^T + T(x-) diag(Q) T(x-)^T``,
+  ``Phi_e = T(x-) Phi S(x+)`` (``mekf.predict``). ``Phi`` is the identity but for its
+  13 x 15 block (``model.transition_reduced_batch``), ``S`` and ``T`` are identity-like with
+  a few dense blocks, and so ``Phi_e`` is sparse but for its ``e_c, e_cdot`` rows (in case B
+  about 360 of 841 entries): ``Phi_e`` is formed from the non-zeros of ``T`` against the
+  rows of ``Phi S``, then ``P-`` as two sparse-times-dense products, lower triangle only;
+- ``measure_batch``: ``h(x_ref [+] e)`` and the row-sparse ``H_e = H(x_ref [+] e) S(x_ref, e)``
+  (``mekf.error_measurement``), from ``model._measure_one`` at the charted state.
+
+**The row-sparse ``H_e``.** A feature's position and velocity in ``L`` are
+``c + D_ref (u_i - u_bar)`` and ``c_dot + omega x D_ref (u_i - u_bar)`` (``u_i = P_i,ref + e_Pi``,
+``core.aligned``): its rows depend on ``e_c, e_cdot, e_omega``, on its own ``e_Pi`` and, through
+the centroid ``u_bar``, on every ``e_Pj`` by the same 3 x 3 block, and not on ``delta`` (in
+exact arithmetic; ``H S`` in numpy leaves round-off ~1e-17 there, which this kernel does
+not form). So a feature row is stored as 15 values: ``e_c, e_cdot, e_omega`` (9), its own
+``e_Pi`` (3) and the common block (3), whose columns ``ne, ne+1, ne+2`` are *virtual*:
+they stand for the sum of the 3 columns of every point (``augment`` appends to a matrix
+``M`` those sums of rows, so that ``H_e M = sum_k h_k M_aug[c_k]``). The 3 pseudo rows see
+``e_omega, delta, e_k`` (8 values). Rows are ``NNZ = 16`` wide (padding: value 0, column 0)
+like those of ``model.measure_batch``, so that ``core.kernels.update`` runs the EKF and the
+IEKF on either.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model import NNZ, _combine, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+E_POINTS = 12  # first column of the points in the aligned error state (and delta at 9..11)
+
+
+@njit(**_JIT)
+def _n_points(n):
+    return (n - 15) // 3
+
+
+@njit(**_JIT)
+def _small_quaternion(d, dq):
+    """``dq(d) = [1, d/2] / |[1, d/2]|`` (``errorstate.small_quaternion``)."""
+    u1, u2, u3 = 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
+    s = math.sqrt(1.0 + u1 * u1 + u2 * u2 + u3 * u3)
+    dq[0], dq[1], dq[2], dq[3] = 1.0 / s, u1 / s, u2 / s, u3 / s
+
+
+@njit(**_JIT)
+def _small_quaternion_jacobian(d, Sq):
+    """``d dq / d d`` (4 x 3): ``(I - p p^T) [0; I/2] / |u|`` (``errorstate.small_quaternion_jacobian``)."""
+    u = np.empty(4)
+    u[0], u[1], u[2], u[3] = 1.0, 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
+    s = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + u[3] * u[3])
+    for a in range(4):
+        for j in range(3):
+            Sq[a, j] = ((0.5 if a == j + 1 else 0.0) - (u[a] / s) * (u[j + 1] / s) * 0.5) / s
+
+
+@njit(**_JIT)
+def _left_times(p, M, out):
+    """``out = L(p) M`` (``M 4 x 3``), ``L(p) r = p (x) r`` (``aligned.left_matrix``)."""
+    p0, p1, p2, p3 = p[0], p[1], p[2], p[3]
+    for j in range(3):
+        m0, m1, m2, m3 = M[0, j], M[1, j], M[2, j], M[3, j]
+        out[0, j] = p0 * m0 - p1 * m1 - p2 * m2 - p3 * m3
+        out[1, j] = p1 * m0 + p0 * m1 - p3 * m2 + p2 * m3
+        out[2, j] = p2 * m0 + p3 * m1 + p0 * m2 - p1 * m3
+        out[3, j] = p3 * m0 - p2 * m1 + p1 * m2 + p0 * m3
+
+
+@njit(**_JIT)
+def _point_mean(x, N, pb):
+    """``pb = P_bar``, the mean of the ``N`` feature points of state ``x``."""
+    for a in range(3):
+        pb[a] = 0.0
+    for i in range(N):
+        for a in range(3):
+            pb[a] += x[13 + 3 * i + a]
+    for a in range(3):
+        pb[a] /= N
+
+
+@njit(**_JIT)
+def _centroid_ref(xr, N, Dref, v):
+    """``D_ref = D(q_ref)`` and ``v = D_ref P_bar,ref``; returns nothing (fills both)."""
+    _dcm(xr[9:13], Dref)
+    pb = np.empty(3)
+    _point_mean(xr, N, pb)
+    for a in range(3):
+        v[a] = Dref[a, 0] * pb[0] + Dref[a, 1] * pb[1] + Dref[a, 2] * pb[2]
+
+
+@njit(**_JIT)
+def _chart(xr, e, out, Dref, R, v):
+    """``out = x_ref [+] e`` (``aligned.chart``); also ``D_ref``, ``R = R(dq(delta))`` and ``v = D_ref u_bar``."""
+    n = xr.shape[0]
+    N = _n_points(n)
+    _centroid_ref(xr, N, Dref, v)
+    w0, w1, w2 = xr[6], xr[7], xr[8]
+    c0, c1, c2 = xr[0] + v[0], xr[1] + v[1], xr[2] + v[2]
+    d0 = xr[3] + (w1 * v[2] - w2 * v[1])
+    d1 = xr[4] + (w2 * v[0] - w0 * v[2])
+    d2 = xr[5] + (w0 * v[1] - w1 * v[0])
+    dq = np.empty(4)
+    _small_quaternion(e[9:12], dq)
+    p0, p1, p2, p3 = xr[9], xr[10], xr[11], xr[12]
+    r0, r1, r2, r3 = dq[0], dq[1], dq[2], dq[3]
+    out[9] = p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3
+    out[10] = p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2
+    out[11] = p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1
+    out[12] = p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0
+    _dcm(dq, R)
+    ub = np.zeros(3)
+    for i in range(N):
+        u0 = xr[13 + 3 * i] + e[12 + 3 * i]
+        u1 = xr[14 + 3 * i] + e[13 + 3 * i]
+        u2 = xr[15 + 3 * i] + e[14 + 3 * i]
+        ub[0] += u0
+        ub[1] += u1
+        ub[2] += u2
+        for a in range(3):  # R^T u
+            out[13 + 3 * i + a] = R[0, a] * u0 + R[1, a] * u1 + R[2, a] * u2
+    for a in range(3):
+        ub[a] /= N
+    for a in range(3):
+        out[6 + a] = xr[6 + a] + e[6 + a]
+        v[a] = Dref[a, 0] * ub[0] + Dref[a, 1] * ub[1] + Dref[a, 2] * ub[2]
+    out[n - 2] = xr[n - 2] + e[n - 3]
+    out[n - 1] = xr[n - 1] + e[n - 2]
+    w0, w1, w2 = out[6], out[7], out[8]
+    out[0] = c0 + e[0] - v[0]
+    out[1] = c1 + e[1] - v[1]
+    out[2] = c2 + e[2] - v[2]
+    out[3] = d0 + e[3] - (w1 * v[2] - w2 * v[1])
+    out[4] = d1 + e[4] - (w2 * v[0] - w0 * v[2])
+    out[5] = d2 + e[5] - (w0 * v[1] - w1 * v[0])
+
+
+@njit(**_JIT)
+def chart_batch(x_ref, e):
+    """``x_ref [+] e`` of every trial, ``(B, n)`` (``aligned.chart``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n))
+    Dref = np.empty((3, 3))
+    R = np.empty((3, 3))
+    v = np.empty(3)
+    for b in range(B):
+        _chart(x_ref[b], e[b], out[b], Dref, R, v)
+    return out
+
+
+@njit(**_JIT)
+def _chart_jacobian(xr, e, S):
+    """``S = d (x_ref [+] e) / d e`` (``n x n-1``, ``aligned.chart_jacobian``), written in full."""
+    n = xr.shape[0]
+    N = _n_points(n)
+    S[:, :] = 0.0
+    Dref = np.empty((3, 3))
+    v = np.empty(3)
+    _centroid_ref(xr, N, Dref, v)  # D_ref (v is recomputed below at u)
+    dq = np.empty(4)
+    _small_quaternion(e[9:12], dq)
+    Sq = np.empty((4, 3))
+    _small_quaternion_jacobian(e[9:12], Sq)
+    _left_times(xr[9:13], Sq, S[9:13, 9:12])
+    R = np.empty((3, 3))
+    dR = np.empty((4, 3, 3))
+    _dcm_derivative(dq, R, dR)
+    w = np.empty(3)
+    for a in range(3):
+        w[a] = xr[6 + a] + e[6 + a]
+    W = np.empty((3, 3))  # [w x] D_ref / N
+    for c in range(3):
+        W[0, c] = (w[1] * Dref[2, c] - w[2] * Dref[1, c]) / N
+        W[1, c] = (w[2] * Dref[0, c] - w[0] * Dref[2, c]) / N
+        W[2, c] = (w[0] * Dref[1, c] - w[1] * Dref[0, c]) / N
+    ub = np.zeros(3)
+    u = np.empty(3)
+    dRtu = np.empty((3, 4))
+    for i in range(N):
+        r0, c0 = 13 + 3 * i, 12 + 3 * i
+        for a in range(3):
+            u[a] = xr[r0 + a] + e[c0 + a]
+            ub[a] += u[a]
+        for a in range(3):
+            for b in range(3):
+                S[r0 + a, c0 + b] = R[b, a]
+                S[a, c0 + b] = -Dref[a, b] / N
+                S[3 + a, c0 + b] = -W[a, b]
+            for j in range(4):  # (dR_j^T u)_a
+                dRtu[a, j] = dR[j, 0, a] * u[0] + dR[j, 1, a] * u[1] + dR[j, 2, a] * u[2]
+        for a in range(3):
+            for j in range(3):
+                S[r0 + a, 9 + j] = (dRtu[a, 0] * Sq[0, j] + dRtu[a, 1] * Sq[1, j] + dRtu[a, 2] * Sq[2, j]
+                                    + dRtu[a, 3] * Sq[3, j])  # fmt: skip
+    for a in range(3):
+        ub[a] /= N
+    for a in range(3):
+        v[a] = Dref[a, 0] * ub[0] + Dref[a, 1] * ub[1] + Dref[a, 2] * ub[2]
+    for a in range(3):
+        S[a, a] = 1.0
+        S[3 + a, 3 + a] = 1.0
+        S[6 + a, 6 + a] = 1.0
+    # [v x] on rho_dot <- e_omega
+    S[3, 7], S[3, 8] = -v[2], v[1]
+    S[4, 6], S[4, 8] = v[2], -v[0]
+    S[5, 6], S[5, 7] = -v[1], v[0]
+    S[n - 2, n - 3] = 1.0
+    S[n - 1, n - 2] = 1.0
+
+
+@njit(**_JIT)
+def chart_jacobian_batch(x_ref, e):
+    """``S (B, n, n-1)`` of every trial (``aligned.chart_jacobian``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n, n - 1))
+    for b in range(B):
+        _chart_jacobian(x_ref[b], e[b], out[b])
+    return out
+
+
+@njit(**_JIT)
+def _error_map(xr, T):
+    """``T = d e / d x`` at ``x_ref`` (``n-1 x n``, ``aligned.error_map``), written in full."""
+    n = xr.shape[0]
+    N = _n_points(n)
+    T[:, :] = 0.0
+    q = xr[9:13]
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
+    Xi = np.empty((3, 4))  # 2 [L(q^*)]_vec
+    Xi[0, 0], Xi[0, 1], Xi[0, 2], Xi[0, 3] = -2.0 * q1, 2.0 * q0, 2.0 * q3, -2.0 * q2
+    Xi[1, 0], Xi[1, 1], Xi[1, 2], Xi[1, 3] = -2.0 * q2, -2.0 * q3, 2.0 * q0, 2.0 * q1
+    Xi[2, 0], Xi[2, 1], Xi[2, 2], Xi[2, 3] = -2.0 * q3, 2.0 * q2, -2.0 * q1, 2.0 * q0
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    _dcm_derivative(q, D, dD)
+    pb = np.empty(3)
+    _point_mean(xr, N, pb)
+    v = np.empty(3)
+    dv = np.empty((3, 4))
+    for a in range(3):
+        v[a] = D[a, 0] * pb[0] + D[a, 1] * pb[1] + D[a, 2] * pb[2]
+        for j in range(4):
+            dv[a, j] = dD[j, a, 0] * pb[0] + dD[j, a, 1] * pb[1] + dD[j, a, 2] * pb[2]
+    w0, w1, w2 = xr[6], xr[7], xr[8]
+    for a in range(3):
+        for j in range(4):
+            T[9 + a, 9 + j] = Xi[a, j]
+    for i in range(N):
+        r0, c0 = 12 + 3 * i, 13 + 3 * i
+        P0, P1, P2 = xr[c0], xr[c0 + 1], xr[c0 + 2]
+        for j in range(4):  # -[P_i x] Xi
+            T[r0, 9 + j] = -(-P2 * Xi[1, j] + P1 * Xi[2, j])
+            T[r0 + 1, 9 + j] = -(P2 * Xi[0, j] - P0 * Xi[2, j])
+            T[r0 + 2, 9 + j] = -(-P1 * Xi[0, j] + P0 * Xi[1, j])
+        for a in range(3):
+            T[r0 + a, c0 + a] = 1.0
+            for b in range(3):
+                T[a, c0 + b] = D[a, b] / N
+        for b in range(3):  # [w x] D / N
+            T[3, c0 + b] = (w1 * D[2, b] - w2 * D[1, b]) / N
+            T[4, c0 + b] = (w2 * D[0, b] - w0 * D[2, b]) / N
+            T[5, c0 + b] = (w0 * D[1, b] - w1 * D[0, b]) / N
+    for j in range(4):
+        T[0, 9 + j], T[1, 9 + j], T[2, 9 + j] = dv[0, j], dv[1, j], dv[2, j]
+        T[3, 9 + j] = w1 * dv[2, j] - w2 * dv[1, j]
+        T[4, 9 + j] = w2 * dv[0, j] - w0 * dv[2, j]
+        T[5, 9 + j] = w0 * dv[1, j] - w1 * dv[0, j]
+    for a in range(3):
+        T[a, a] = 1.0
+        T[3 + a, 3 + a] = 1.0
+        T[6 + a, 6 + a] = 1.0
+    # -[v x] on e_cdot <- omega
+    T[3, 7], T[3, 8] = v[2], -v[1]
+    T[4, 6], T[4, 8] = -v[2], v[0]
+    T[5, 6], T[5, 7] = v[1], -v[0]
+    T[n - 3, n - 2] = 1.0
+    T[n - 2, n - 1] = 1.0
+
+
+@njit(**_JIT)
+def error_map_batch(x_ref):
+    """``T (B, n-1, n)`` of every trial (``aligned.error_map``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n - 1, n))
+    for b in range(B):
+        _error_map(x_ref[b], out[b])
+    return out
+
+
+# --- prediction -----------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _sparse_row_times(out, a, M):
+    """``out += a M`` (``a`` a sparse row), one axpy per non-zero of ``a``."""
+    for t in range(a.shape[0]):
+        c = a[t]
+        if c != 0.0:
+            for j in range(out.shape[0]):
+                out[j] += c * M[t, j]
+
+
+@njit(**_JIT)
+def _add_mapped_noise(T, Q, Pb, idx, val):
+    """``Pb += T diag(Q) T^T`` on the lower triangle, one column of ``T`` (its few non-zeros) at a time."""
+    ne, n = T.shape
+    for j in range(n):
+        q = Q[j]
+        if q == 0.0:
+            continue
+        cnt = 0
+        for r in range(ne):
+            if T[r, j] != 0.0:
+                idx[cnt] = r
+                val[cnt] = T[r, j]
+                cnt += 1
+        for a in range(cnt):
+            va = q * val[a]
+            for c in range(a + 1):
+                Pb[idx[a], idx[c]] += va * val[c]
+
+
+@njit(**_JIT)
+def predict_covariance_batch(x, x_pred, Tb, P, Q):
+    """``P- = Phi_e P Phi_e^T + T(x-) diag(Q) T(x-)^T`` with ``Phi_e = T(x-) Phi S(x+)``, symmetric (``mekf.predict``).
+
+    ``x (B, n)`` the posteriors at which ``F`` was evaluated, ``x_pred (B, n)`` the predicted
+    states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
+    of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
+    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)``; ``P-``
+    (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` (by rows, ``model._combine``) plus
+    ``T diag(Q) T^T`` (column by column of ``T``, on its non-zeros); ``Phi_e = T (Phi S)`` by
+    rows on the non-zeros of ``T``.
+    """
+    B, n = x.shape
+    ne = n - 1
+    out = np.empty((B, ne, ne))
+    S = np.empty((n, ne))
+    T = np.empty((ne, n))
+    idx = np.empty(ne, np.int64)
+    val = np.empty(ne)
+    PS = np.empty((n, ne))
+    Y = np.empty((ne, ne))
+    M = np.empty((ne, ne))
+    Mt = np.empty((ne, ne))
+    e0 = np.zeros(ne)
+    for b in range(B):
+        _chart_jacobian(x[b], e0, S)
+        _error_map(x_pred[b], T)
+        for a in range(n):
+            for j in range(ne):
+                PS[a, j] = S[a, j] if a >= 13 else 0.0
+        for a in range(13):  # (Phi S)[0:13] = Tb S[c], c = [0..12, n-2, n-1]
+            _combine(PS[a], 0, ne, S, Tb[b, a], 0, 13, 1.0)
+            _combine(PS[a], 0, ne, S[n - 15 :], Tb[b, a], 13, 15, 1.0)
+        for r in range(ne):  # Phi_e = T (Phi S); M = Phi_e P
+            for j in range(ne):
+                Y[r, j] = 0.0
+                M[r, j] = 0.0
+            _sparse_row_times(Y[r], T[r], PS)
+            _combine(M[r], 0, ne, P[b], Y[r], 0, ne, 1.0)
+        for i in range(ne):
+            for j in range(ne):
+                Mt[i, j] = M[j, i]
+        Pb = out[b]
+        for r in range(ne):  # lower triangle of Phi_e M^T + T Q T^T
+            for j in range(r + 1):
+                Pb[r, j] = 0.0
+            _combine(Pb[r], 0, r + 1, Mt, Y[r], 0, ne, 1.0)
+        _add_mapped_noise(T, Q[b], Pb, idx, val)
+        _mirror_lower(Pb)
+    return out
+
+
+# --- measurement ----------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D, dD):
+    """``h(x_ref [+] e)`` and the row-sparse ``H_e`` of one trial (module docstring); ``xt``: the charted state.
+
+    From ``model._measure_one``'s full-state rows at ``xt``: a feature's ``[rho, rho_dot,
+    omega, q, P_i]`` columns become ``e_c = H_rho``, ``e_cdot = H_rho_dot``,
+    ``e_omega = H_omega + H_rho_dot [v x]``, ``e_Pi = H_Pi R^T`` and the common block
+    ``-(H_rho D_ref + H_rho_dot [omega x] D_ref) / N``; a pseudo row's ``[omega, q, k]``
+    become ``e_omega``, ``delta = H_q L(q_ref) d dq/d delta``, ``e_k``.
+    """
+    N = _n_points(xr.shape[0])
+    Dref = np.empty((3, 3))
+    R = np.empty((3, 3))
+    v = np.empty(3)
+    _chart(xr, e, xt, Dref, R, v)
+    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    if not compute_jac:
+        return
+    C = 9 if disparity else 8
+    nf = vis.shape[0] * C
+    w0, w1, w2 = xt[6], xt[7], xt[8]
+    WD = np.empty((3, 3))  # [omega x] D_ref / N
+    for j in range(3):
+        WD[0, j] = (w1 * Dref[2, j] - w2 * Dref[1, j]) / N
+        WD[1, j] = (w2 * Dref[0, j] - w0 * Dref[2, j]) / N
+        WD[2, j] = (w0 * Dref[1, j] - w1 * Dref[0, j]) / N
+    h = np.empty(NNZ)
+    for r in range(nf):
+        for k in range(NNZ):
+            h[k] = Hval[r, k]
+        Hval[r, 6] = h[6] + (h[4] * v[2] - h[5] * v[1])
+        Hval[r, 7] = h[7] + (h[5] * v[0] - h[3] * v[2])
+        Hval[r, 8] = h[8] + (h[3] * v[1] - h[4] * v[0])
+        for j in range(3):
+            Hval[r, 9 + j] = h[13] * R[j, 0] + h[14] * R[j, 1] + h[15] * R[j, 2]
+            Hval[r, 12 + j] = (-(h[0] * Dref[0, j] + h[1] * Dref[1, j] + h[2] * Dref[2, j]) / N
+                               - (h[3] * WD[0, j] + h[4] * WD[1, j] + h[5] * WD[2, j]))  # fmt: skip
+        Hval[r, 15] = 0.0
+    if pseudo:
+        Sq = np.empty((4, 3))
+        LSq = np.empty((4, 3))
+        _small_quaternion_jacobian(e[9:12], Sq)
+        _left_times(xr[9:13], Sq, LSq)
+        for r in range(nf, nf + 3):
+            for k in range(NNZ):
+                h[k] = Hval[r, k]
+            for j in range(3):
+                Hval[r, 3 + j] = h[3] * LSq[0, j] + h[4] * LSq[1, j] + h[5] * LSq[2, j] + h[6] * LSq[3, j]
+            Hval[r, 6], Hval[r, 7] = h[7], h[8]
+            for k in range(8, NNZ):
+                Hval[r, k] = 0.0
+
+
+@njit(**_JIT)
+def measurement_columns(ne, vis, channels, pseudo):
+    """Column indices ``(m, 16)`` of the row-sparse ``H_e``: a feature's rows see ``e_c, e_cdot, e_omega``,
+    its point and the virtual point-sum columns ``ne, ne+1, ne+2``; the pseudo rows ``e_omega, delta, e_k``."""
+    k = np.array([ne - 2, ne - 1])
+    return row_columns(vis, channels, np.arange(9), E_POINTS, np.arange(ne, ne + 3),
+                       np.concatenate((np.arange(6, 12), k)), pseudo)  # fmt: skip
+
+
+@njit(**_JIT)
+def measure_batch(x_ref, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
+    """``h(x_ref [+] e) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_e`` (``measurement_columns``)."""
+    B, n = x_ref.shape
+    C = 9 if disparity else 8
+    m = vis.shape[0] * C + (3 if pseudo else 0)
+    hx = np.empty((B, m))
+    Hval = np.zeros((B, m, NNZ))
+    xt = np.empty(n)
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_aligned(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac,
+                         hx[b], Hval[b], xt, D, dD)  # fmt: skip
+    return hx, Hval
+
+
+@njit(**_JIT)
+def augment(M, out):
+    """``out[:ne] = M`` (``ne`` rows) and ``out[ne + a] = sum_j M[12 + 3 j + a]``: the rows of the virtual columns."""
+    ne = M.shape[0]
+    N = (ne - 14) // 3
+    for i in range(ne):
+        for j in range(M.shape[1]):
+            out[i, j] = M[i, j]
+    for a in range(3):
+        for j in range(M.shape[1]):
+            out[ne + a, j] = 0.0
+        for p in range(N):
+            for j in range(M.shape[1]):
+                out[ne + a, j] += M[E_POINTS + 3 * p + a, j]
+
+
+def dense(Hval: np.ndarray, cols: np.ndarray, ne: int) -> np.ndarray:
+    """Dense ``H_e (B, m, ne)`` from the row-sparse one: each virtual column added to every point's columns."""
+    from .model import dense as dense_full
+
+    H = dense_full(Hval, cols, ne + 3)
+    for p in range((ne - 14) // 3):
+        H[..., E_POINTS + 3 * p : E_POINTS + 3 * p + 3] += H[..., ne:]
+    return np.ascontiguousarray(H[..., :ne])
