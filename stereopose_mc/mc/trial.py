@@ -179,7 +179,7 @@ def run_filter(
     P = estimators.initial_covariance(x, P, fs)
     err[:, 0] = errors(x, true_state(truth.x, 0, np.arange(B)))
     parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
-    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state)
+    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state, kernels)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -224,7 +224,7 @@ def run_filter(
         with np.errstate(all="ignore"):
             try:
                 nis[active, k] = u.nis
-                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active), fs.error_state)
+                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active), fs.error_state, kernels)
             except np.linalg.LinAlgError:
                 pass
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
@@ -316,7 +316,7 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
                  for f in dataclasses.fields(cls))), r1 + r2  # fmt: skip
 
 
-def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> dict[str, Array]:
+def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude", kernels: str = "numpy") -> dict[str, Array]:
     """Full, block and gauge-projected NEES (docs/filters.md) of estimates ``(x, P)``.
 
     Full and gauge-projected NEES in the aligned chart, blocks in the attitude chart
@@ -327,6 +327,10 @@ def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude") ->
     (MEKF, UKF), or the aligned chart's (``error_state: aligned``, mapped to the attitude
     chart, in which every NEES is reported).
     """
+    if kernels == "compiled" and error_state == "aligned" and P.shape[-1] == x.shape[-1] - 1:
+        from ..core.kernels import consistency  # the same numbers to round-off (tests/core/test_kernels_consistency.py)
+
+        return consistency.nees_report(x, P, x_true)
     with np.errstate(all="ignore"):
         return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true)
 
@@ -351,8 +355,8 @@ def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Ar
 
 
 def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
-                 error_state: str = "attitude") -> None:  # fmt: skip
-    v = nees_of(x, P, x_true, error_state)
+                 error_state: str = "attitude", kernels: str = "numpy") -> None:  # fmt: skip
+    v = nees_of(x, P, x_true, error_state, kernels)
     nees[rows, k] = v["nees"]
     for name, a in parts.items():
         a[rows, k] = v[name]
