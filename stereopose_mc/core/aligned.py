@@ -248,7 +248,9 @@ def nees_report(x_hat: Array, P: Array, x_true: Array) -> dict[str, Array]:
     e = local(x_hat, x_true)
     out = {"nees": es.mahalanobis2(e, P)}
     V = gauge_complement(n)
-    out["nees_gauge"] = es.mahalanobis2(e @ V, np.swapaxes(V, 0, 1) @ P @ V)
+    # per-trial products (a stacked matvec, not one (B, n) x (n, n-4) GEMM: its rounding would depend on B)
+    z = (np.swapaxes(V, 0, 1) @ e[..., None])[..., 0]
+    out["nees_gauge"] = es.mahalanobis2(z, np.swapaxes(V, 0, 1) @ P @ V)
     eps = es.estimation_error(x_hat, x_true)
     M = es.error_map(x_hat) @ chart_jacobian(x_hat)
     for name, b in es.error_blocks(st.n_points(n)).items():

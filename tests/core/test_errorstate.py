@@ -6,14 +6,13 @@ from scipy import stats
 
 from stereopose_mc.core import camera, errorstate as es, quaternion as qt, state as st
 
+from scenarios import random_states  # noqa: E402
+
 RNG = np.random.default_rng(7)
 
 
 def random_state(B=4, N=3):
-    q = qt.normalize(RNG.standard_normal((B, 4)))
-    pts = RNG.standard_normal((B, N, 3))
-    return st.assemble(RNG.standard_normal((B, 3)) + [0, 40, 0], 1e-2 * RNG.standard_normal((B, 3)),
-                       1e-2 * RNG.standard_normal((B, 3)), q, pts, 0.2 * RNG.standard_normal((B, 2)))  # fmt: skip
+    return random_states(RNG, B, N)
 
 
 def test_chart_and_local_are_inverse():
