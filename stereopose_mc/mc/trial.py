@@ -57,7 +57,7 @@ class Bounds:
     nis_start_s: float = 10.0
     gated_fraction: float = 0.5
     sigma_ratio: float = 30.0  # 'inconsistent': a block's error over its claimed sigma (mc/divergence.py)
-    nees_factor: float = 1000.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
+    nees_factor: float = 10.0  # 'inconsistent': gauge-projected NEES over its chi-square 99.9% bound
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
@@ -118,7 +118,7 @@ class FilterRun:
     nees_parts: dict[str, Array] = field(default_factory=dict)  # nees_<block>, nees_gauge: (B, K+1)
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
-    P_final: Array | None = None  # (B, n, n)
+    P_final: Array | None = None  # (B, n, n) full state, or (B, n-1, n-1) the filter's error state
     dof: Array | None = None  # (B, K+1) per-trial measurement dimension (features dropped or gated out removed)
     gated: Array | None = None  # (B, K+1) int: features rejected by the filter's gate at each step
     k_sigma_ratio: Array | None = None  # (B, 2) final / initial standard deviation of k1, k2

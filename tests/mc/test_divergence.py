@@ -84,3 +84,15 @@ def test_ekf_iterated_first_update_equals_the_iekf_at_the_first_step_only():
     np.testing.assert_array_equal(it1.iterations[:, 1], iekf.iterations[:, 1])
     assert (it1.iterations[:, 2:] == 1).all() and (iekf.iterations[:, 2:] >= 1).all()
     assert not np.array_equal(it1.errors[:, 1], plain.errors[:, 1])
+
+
+def test_bounds_defaults_are_the_scenario_defaults():
+    """``mc.trial.Bounds()`` (used by in-process runs) and the scenario's ``divergence`` block agree."""
+    import dataclasses as dc
+
+    from stereopose_mc.config.schema import DivergenceConfig
+    from stereopose_mc.mc.trial import Bounds
+
+    d = DivergenceConfig()
+    for f in dc.fields(Bounds):
+        assert getattr(Bounds(), f.name) == getattr(d, f.name), f.name

@@ -78,7 +78,11 @@ def test_filters_run_with_features_coming_and_going():
     truth = simulate_truth(s)
     exact = meas.noise_free(s, truth)
     assert len(set(exact.visible.sum(-1))) > 2  # the number of visible features changes
-    res = run_chunk(scn.seed, np.arange(4), s, truth, exact, [filter_setup_of(f, s) for f in scn.filters], Bounds())
+    # the dof bookkeeping of trials that run to the end is what is checked here, not consistency: 12 surface points
+    # coming and going from the thesis's wide P0 lose about half the trials to the default 'inconsistent' rule
+    # (either error state), so this test keeps the lenient factor
+    res = run_chunk(scn.seed, np.arange(4), s, truth, exact, [filter_setup_of(f, s) for f in scn.filters],
+                    Bounds(nees_factor=1000.0))  # fmt: skip
     r = res.runs[0]
     np.testing.assert_array_equal(r.nis_dof[1:], exact.visible[1:].sum(-1) * 8 + 3)
     live = ~np.isnan(r.errors[:, 1:, 0])
