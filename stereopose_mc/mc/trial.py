@@ -124,14 +124,19 @@ class FilterRun:
     k_sigma_ratio: Array | None = None  # (B, 2) final / initial standard deviation of k1, k2
 
 
-def _check(x: Array, P: Array, err: Array, bounds: Bounds) -> list[str]:
-    """Reason of divergence per trial ('' when healthy)."""
+def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = None) -> list[str]:
+    """Reason of divergence per trial ('' when healthy).
+
+    ``pd``: per trial, ``P`` known positive definite (the compiled NEES kernel's Cholesky
+    factorization went through); None: checked here by numpy's Cholesky.
+    """
     B = x.shape[0]
     reasons = [""] * B
     finite = np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-1, -2))
-    pd = np.zeros(B, bool)
-    if finite.any():
-        pd[finite] = positive_definite(P[finite])
+    if pd is None:
+        pd = np.zeros(B, bool)
+        if finite.any():
+            pd[finite] = positive_definite(P[finite])
     lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
     over = err > lim
     names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
@@ -210,8 +215,13 @@ def run_filter(
         )
         with np.errstate(all="ignore"):
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, stepper.update)
-            e = errors(u.x, true_state(truth.x, k, active))
-            bad = _check(u.x, u.P, e, bounds)
+            x_true_k = true_state(truth.x, k, active)
+            e = errors(u.x, x_true_k)
+            try:
+                v, pd = nees_and_pd(u.x, u.P, x_true_k, fs.error_state, kernels)
+            except np.linalg.LinAlgError:
+                v, pd = None, None
+            bad = _check(u.x, u.P, e, bounds, pd)
         bad = [f or b for f, b in zip(failed, bad)]
         x[active], P[active] = u.x, u.P
         w_hist = np.concatenate([w_hist[:, 1:], x[:, None, st.OMEGA]], axis=1)  # push the posterior at t_k
@@ -221,12 +231,9 @@ def run_filter(
         if getattr(u, "features_used", None) is not None:
             dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
             gated[active, k] = u.rejected
-        with np.errstate(all="ignore"):
-            try:
-                nis[active, k] = u.nis
-                _record_nees(nees, parts, active, k, u.x, u.P, true_state(truth.x, k, active), fs.error_state, kernels)
-            except np.linalg.LinAlgError:
-                pass
+        nis[active, k] = u.nis
+        if v is not None:
+            _store_nees(nees, parts, active, k, v)
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
             w0 = k - bounds.nis_window_steps + 1
             with warnings.catch_warnings():
@@ -354,12 +361,32 @@ def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Ar
     return P
 
 
-def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
-                 error_state: str = "attitude", kernels: str = "numpy") -> None:  # fmt: skip
-    v = nees_of(x, P, x_true, error_state, kernels)
+def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
+                kernels: str = "numpy") -> tuple[dict[str, Array], Array | None]:  # fmt: skip
+    """``nees_of`` and, from the compiled kernel (aligned error state), whether ``P`` is positive definite.
+
+    The second item is None where the numpy path computed the NEES (``_check`` then factorizes ``P``).
+    """
+    if kernels == "compiled" and error_state == "aligned" and P.shape[-1] == x.shape[-1] - 1:
+        from ..core.kernels import consistency
+
+        return consistency.nees_and_pd(x, P, x_true)
+    return nees_of(x, P, x_true, error_state, kernels), None
+
+
+def _store_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, v: dict[str, Array]) -> None:
     nees[rows, k] = v["nees"]
     for name, a in parts.items():
         a[rows, k] = v[name]
+
+
+def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
+                 error_state: str = "attitude", kernels: str = "numpy") -> None:  # fmt: skip
+    with np.errstate(all="ignore"):
+        try:
+            _store_nees(nees, parts, rows, k, nees_of(x, P, x_true, error_state, kernels))
+        except np.linalg.LinAlgError:
+            pass
 
 
 @dataclass

@@ -44,3 +44,37 @@ def test_broken_trials_give_nan_like_numpy():
     assert np.isnan(got["nees"][1]) and np.isnan(ref["nees"][1])
     assert all(np.isnan(got[k][2]) for k in kc.KEYS)
     np.testing.assert_allclose(got["nees"][[0, 3]], ref["nees"][[0, 3]], rtol=1e-10)
+
+
+def test_gauge_nees_with_a_wide_gauge_direction():
+    """The gauge-projected NEES from the full NEES's factor (projection of ``L^-1 e`` off ``L^-1 G``) against an
+    exact value: ``P`` block-diagonal in an orthonormal basis ``[V, G]`` (``G`` the gauge, 10 m wide; ``V`` its
+    complement, 1 cm to 1 m) and ``e = V a + G g``: the gauge-projected NEES is ``a^T C^-1 a`` whatever ``g``."""
+    N = 5
+    xh, _, xt = _case(20, N)
+    ne = xh.shape[-1] - 1
+    G = np.zeros((ne, 3))
+    G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1)) / np.sqrt(N)
+    V = aligned.gauge_complement(ne + 1)
+    V = np.linalg.qr(V)[0]  # orthonormal, orthogonal to G
+    for b in range(20):
+        Cr = RNG.standard_normal((ne - 3, ne - 3)) * np.logspace(-2, 0, ne - 3)[:, None]  # 1 cm to 1 m
+        C = Cr @ Cr.T / ne + 1e-6 * np.eye(ne - 3)
+        P = V @ C @ V.T + 1e2 * G @ G.T
+        a = np.linalg.cholesky(C) @ RNG.standard_normal(ne - 3)
+        exact = a @ np.linalg.solve(C, a)
+        e_target = V @ a + G @ (10.0 * RNG.standard_normal(3))
+        # estimate whose aligned error is e_target: x_hat = x_true [-] e; use the chart at the truth instead
+        xh_b = xt[b]
+        xt_b = aligned.chart(xh_b[None], e_target[None])[0]
+        got = kc.nees_report(xh_b[None], P[None], xt_b[None])["nees_gauge"][0]
+        e = aligned.local(xh_b[None], xt_b[None])[0]
+        np.testing.assert_allclose(e, e_target, rtol=1e-9, atol=1e-12)  # the chart's inverse (tested elsewhere)
+        np.testing.assert_allclose(got, exact, rtol=1e-7)
+
+
+def test_pd_flag_is_the_factorization_of_P():
+    xh, P, xt = _case(3, 2)
+    P[1] = -P[1]
+    _, pd = kc.nees_and_pd(xh, P, xt)
+    assert pd.tolist() == [True, False, True]

@@ -339,10 +339,10 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     ``x (B, n)`` the posteriors at which ``F`` was evaluated, ``x_pred (B, n)`` the predicted
     states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
     of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
-    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)``; ``P-``
-    (lower triangle) from ``M = Phi_e P`` as ``Phi_e M^T`` (by rows, ``model._combine``) plus
-    ``T diag(Q) T^T`` (column by column of ``T``, on its non-zeros); ``Phi_e = T (Phi S)`` by
-    rows on the non-zeros of ``T``.
+    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)`` by rows on
+    the non-zeros of ``T``; ``P- = Phi_e (Phi_e P)^T`` by BLAS (two ``np.dot``), then
+    ``T diag(Q) T^T`` on its lower triangle (column by column of ``T``, on its non-zeros), the
+    lower triangle mirrored (exactly symmetric).
     """
     B, n = x.shape
     ne = n - 1
@@ -354,7 +354,6 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     PS = np.empty((n, ne))
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
-    Mt = np.empty((ne, ne))
     e0 = np.zeros(ne)
     for b in range(B):
         _chart_jacobian(x[b], e0, S)
@@ -365,21 +364,14 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
         for a in range(13):  # (Phi S)[0:13] = Tb S[c], c = [0..12, n-2, n-1]
             _combine(PS[a], 0, ne, S, Tb[b, a], 0, 13, 1.0)
             _combine(PS[a], 0, ne, S[n - 15 :], Tb[b, a], 13, 15, 1.0)
-        for r in range(ne):  # Phi_e = T (Phi S); M = Phi_e P
+        for r in range(ne):  # Phi_e = T (Phi S)
             for j in range(ne):
                 Y[r, j] = 0.0
-                M[r, j] = 0.0
             _sparse_row_times(Y[r], T[r], PS)
-            _combine(M[r], 0, ne, P[b], Y[r], 0, ne, 1.0)
-        for i in range(ne):
-            for j in range(ne):
-                Mt[i, j] = M[j, i]
+        np.dot(Y, P[b], M)  # M = Phi_e P (BLAS gemm)
         Pb = out[b]
-        for r in range(ne):  # lower triangle of Phi_e M^T + T Q T^T
-            for j in range(r + 1):
-                Pb[r, j] = 0.0
-            _combine(Pb[r], 0, r + 1, Mt, Y[r], 0, ne, 1.0)
-        _add_mapped_noise(T, Q[b], Pb, idx, val)
+        np.dot(Y, M.T, Pb)  # Phi_e M^T
+        _add_mapped_noise(T, Q[b], Pb, idx, val)  # + T Q T^T on the lower triangle
         _mirror_lower(Pb)
     return out
 

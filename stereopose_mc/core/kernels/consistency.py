@@ -4,19 +4,21 @@ Per trial, from the estimate ``x_hat``, the covariance ``P`` of its aligned erro
 the truth ``x_true`` (docs/filters.md, Consistency):
 
 - ``e = local_aligned(x_hat, x_true)``; full NEES ``e^T P^-1 e`` (``n - 1`` dof);
-- gauge-projected NEES of ``W e`` with ``W P W^T``, ``W`` the differences of every point's
-  ``e_Pi`` from the first point's (``n - 4`` rows, annihilating the common ``e_P``): the same
-  number as with ``core.aligned.gauge_complement`` (a NEES of ``z`` does not change when ``z``
-  is replaced by ``A z``, ``A`` invertible), for a sparse ``W``;
+- gauge-projected NEES: that of ``W e`` with ``W P W^T`` for any full-rank ``W`` with ``W G = 0``,
+  ``G`` the gauge direction "the same ``e_P`` for every point" (3 columns), e.g.
+  ``core.aligned.gauge_complement``'s ``V^T``: ``e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e``,
+  evaluated from the full NEES's Cholesky factor ``L`` as ``|w - Q Q^T w|^2``, ``w = L^-1 e``,
+  ``Q`` an orthonormal basis of ``L^-1 G`` (no second factorization, no cancellation);
 - the block NEES of the attitude-chart error ``eps = local_attitude(x_true, x_hat)`` with the
   blocks of ``M P M^T``, ``M = T_attitude S_aligned`` at ``x_hat``, written out:
   ``d rho = e_c - D mean(e_P)``, ``d rho_dot = e_cdot + [v x] e_omega - [omega x] D mean(e_P)``
   (``v = D P_bar``), ``a = D delta``, ``d P_i = e_Pi + [P_i x] delta``, identity on ``omega``
   and ``k``.
 
-Products with ``M`` and ``W`` skip their zeros (a few per row); the three symmetric systems
-are solved by the Cholesky of ``core.kernels.update``. A trial whose covariance is not
-positive definite (or whose state is not finite) gets NaN, as ``errorstate.mahalanobis2``.
+``M`` is held by rows of non-zeros (``1 + 3N`` at most); the block covariances are solved by
+the Cholesky of ``core.kernels.update``. A trial whose covariance is not positive definite
+(or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
+positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from .model import _dcm
-from .update import _cholesky
+from .update import _cholesky, _cholesky_small
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -36,44 +38,62 @@ KEYS = ("nees", "nees_gauge", "nees_rho", "nees_rho_dot", "nees_omega", "nees_at
 
 
 @njit(**_JIT)
-def _mahalanobis(e, P, L, w):
-    """``e^T P^-1 e`` by Cholesky (``L``, ``w`` scratch); NaN if ``P`` is not positive definite."""
-    n = e.shape[0]
-    if not _cholesky(P, L):
-        return np.nan
-    s = 0.0
+def _forward(L, b, out):
+    """``out = L^-1 b`` (``L`` lower triangular, forward substitution)."""
+    n = L.shape[0]
     for i in range(n):
-        t = e[i]
+        t = b[i]
         for k in range(i):
-            t -= L[i, k] * w[k]
-        w[i] = t / L[i, i]
+            t -= L[i, k] * out[k]
+        out[i] = t / L[i, i]
+
+
+@njit(**_JIT)
+def _mahalanobis(e, P, L, w):
+    """``e^T P^-1 e`` by Cholesky (``L``, ``w`` scratch; a small block's); NaN if ``P`` is not positive definite."""
+    if not _cholesky_small(P, L):
+        return np.nan
+    _forward(L, e, w)
+    s = 0.0
+    for i in range(e.shape[0]):
         s += w[i] * w[i]
     return s
 
 
 @njit(**_JIT)
-def _sandwich(M, rows, P, Y, out):
-    """``out = M[rows] P M[rows]^T`` skipping the zeros of ``M`` (``Y`` scratch, ``len(rows) x n``)."""
-    m, n = rows.shape[0], P.shape[0]
+def _block(cnt, cols, vals, lo, hi, P, Y, C):
+    """``C = M[lo:hi] P M[lo:hi]^T`` for the sparse rows of ``M`` (row ``r``: ``cnt[r]`` pairs ``cols, vals``).
+
+    ``Y = M[lo:hi] P`` row by row from the non-zeros, then ``C[a, b] = Y[a] . M[lo + b]``.
+    """
+    n = P.shape[0]
+    m = hi - lo
     for a in range(m):
-        r = rows[a]
+        r = lo + a
         for c in range(n):
             Y[a, c] = 0.0
-        for k in range(n):
-            v = M[r, k]
-            if v != 0.0:
-                for c in range(n):
-                    Y[a, c] += v * P[k, c]
+        for j in range(cnt[r]):
+            v = vals[r, j]
+            k = cols[r, j]
+            for c in range(n):
+                Y[a, c] += v * P[k, c]
     for a in range(m):
         for b in range(a + 1):
+            r = lo + b
             s = 0.0
-            rb = rows[b]
-            for k in range(n):
-                v = M[rb, k]
-                if v != 0.0:
-                    s += Y[a, k] * v
-            out[a, b] = s
-            out[b, a] = s
+            for j in range(cnt[r]):
+                s += Y[a, cols[r, j]] * vals[r, j]
+            C[a, b] = s
+            C[b, a] = s
+
+
+@njit(**_JIT)
+def _put(cnt, cols, vals, r, c, v):
+    """Append the non-zero ``M[r, c] = v``."""
+    j = cnt[r]
+    cols[r, j] = c
+    vals[r, j] = v
+    cnt[r] = j + 1
 
 
 @njit(**_JIT)
@@ -85,7 +105,7 @@ def _qmul(p, q, out):
 
 
 @njit(**_JIT)
-def _one(xh, P, xt, N, out, e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp):
+def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3):
     n = xh.shape[0]
     ne = n - 1
     # --- aligned error at the estimate: e = local_aligned(x_hat, x_true)
@@ -100,8 +120,12 @@ def _one(xh, P, xt, N, out, e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp):
     _dcm(dq, R)
     _dcm(xh[9:13], D)
     _dcm(xt[9:13], Dt)
-    pbh = np.zeros(3)
-    pbt = np.zeros(3)
+    pbh, pbt, vh, vt, ch, ct = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
+    for r in range(3):
+        pbh[r] = 0.0
+        pbt[r] = 0.0
+        vh[r] = 0.0
+        vt[r] = 0.0
     for i in range(N):
         for r in range(3):
             pbh[r] += xh[13 + 3 * i + r] / N
@@ -110,8 +134,6 @@ def _one(xh, P, xt, N, out, e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp):
             for c in range(3):
                 s += R[r, c] * xt[13 + 3 * i + c]
             e[12 + 3 * i + r] = s - xh[13 + 3 * i + r]
-    vh = np.zeros(3)
-    vt = np.zeros(3)
     for r in range(3):
         for c in range(3):
             vh[r] += D[r, c] * pbh[c]
@@ -120,38 +142,52 @@ def _one(xh, P, xt, N, out, e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp):
         e[6 + r] = xt[6 + r] - xh[6 + r]
         e[r] = (xt[r] + vt[r]) - (xh[r] + vh[r])
     wh, wt = xh[6:9], xt[6:9]
-    ch = np.empty(3)
-    ct = np.empty(3)
     ch[0], ch[1], ch[2] = wh[1] * vh[2] - wh[2] * vh[1], wh[2] * vh[0] - wh[0] * vh[2], wh[0] * vh[1] - wh[1] * vh[0]
     ct[0], ct[1], ct[2] = wt[1] * vt[2] - wt[2] * vt[1], wt[2] * vt[0] - wt[0] * vt[2], wt[0] * vt[1] - wt[1] * vt[0]
     for r in range(3):
         e[3 + r] = (xt[3 + r] + ct[r]) - (xh[3 + r] + ch[r])
     for j in range(2):
         e[12 + 3 * N + j] = xt[13 + 3 * N + j] - xh[13 + 3 * N + j]
-    out[0] = _mahalanobis(e, P, L, w)
-    # --- gauge-projected: W e, W P W^T
-    ng = ne - 3
-    for r in range(ng):
-        for c in range(ne):
-            W[r, c] = 0.0
-    for r in range(12):
-        W[r, r] = 1.0
-    for i in range(1, N):
-        for j in range(3):
-            W[12 + 3 * (i - 1) + j, 12 + 3 * i + j] = 1.0
-            W[12 + 3 * (i - 1) + j, 12 + j] = -1.0
-    for j in range(2):
-        W[ng - 2 + j, ne - 2 + j] = 1.0
-    rows = np.arange(ng)
-    _sandwich(W, rows, P, Y, S)
-    z = np.empty(ng)
-    for r in range(ng):
+    # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too)
+    if not _cholesky(P, L):
+        return False
+    _forward(L, e, w)
+    full = 0.0
+    for i in range(ne):
+        full += w[i] * w[i]
+    out[0] = full
+    # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
+    # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
+    # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
+    # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
+    for j in range(3):
+        for i in range(ne):
+            u[i] = 0.0
+        for i in range(N):
+            u[12 + 3 * i + j] = 1.0
+        _forward(L, u, U[j])
+        for k in range(j):
+            s = 0.0
+            for i in range(ne):
+                s += U[k, i] * U[j, i]
+            for i in range(ne):
+                U[j, i] -= s * U[k, i]
         s = 0.0
-        for c in range(ne):
-            if W[r, c] != 0.0:
-                s += W[r, c] * e[c]
-        z[r] = s
-    out[1] = _mahalanobis(z, S[:ng, :ng], L[:ng, :ng], w)
+        for i in range(ne):
+            s += U[j, i] * U[j, i]
+        s = math.sqrt(s)
+        for i in range(ne):
+            U[j, i] /= s
+    for j in range(3):
+        s = 0.0
+        for i in range(ne):
+            s += U[j, i] * w[i]
+        for i in range(ne):
+            w[i] -= s * U[j, i]
+    g = 0.0
+    for i in range(ne):
+        g += w[i] * w[i]
+    out[1] = g
     # --- attitude-chart error, anchored at the truth: x_hat = x_true [+] eps
     for r in range(9):
         eps[r] = xh[r] - xt[r]
@@ -161,67 +197,79 @@ def _one(xh, P, xt, N, out, e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp):
     _qmul(xh[9:13], tmp, dq)
     for j in range(3):
         eps[9 + j] = 2.0 * (dq[1 + j] / nh) / (dq[0] / nh)
-    # --- M = d eps / d e at x_hat (rows of the attitude chart, columns of the aligned one)
+    # --- M = d eps / d e at x_hat (rows of the attitude chart, columns of the aligned one), by rows of non-zeros
     for r in range(ne):
-        for c in range(ne):
-            M[r, c] = 0.0
+        cnt[r] = 0
     for r in range(3):
-        M[r, r] = 1.0  # d rho / d e_c
-        M[3 + r, 3 + r] = 1.0  # d rho_dot / d e_cdot
-        M[6 + r, 6 + r] = 1.0
+        _put(cnt, cols, vals, r, r, 1.0)  # d rho / d e_c
+        _put(cnt, cols, vals, 3 + r, 3 + r, 1.0)  # d rho_dot / d e_cdot
+        _put(cnt, cols, vals, 6 + r, 6 + r, 1.0)
         for c in range(3):
-            M[9 + r, 9 + c] = D[r, c]  # a = D delta
+            _put(cnt, cols, vals, 9 + r, 9 + c, D[r, c])  # a = D delta
     # [v x] on e_omega in rho_dot
-    M[3, 7], M[3, 8] = -vh[2], vh[1]
-    M[4, 6], M[4, 8] = vh[2], -vh[0]
-    M[5, 6], M[5, 7] = -vh[1], vh[0]
-    OD = np.empty((3, 3))  # [omega x] D
-    for c in range(3):
-        OD[0, c] = wh[1] * D[2, c] - wh[2] * D[1, c]
-        OD[1, c] = wh[2] * D[0, c] - wh[0] * D[2, c]
-        OD[2, c] = wh[0] * D[1, c] - wh[1] * D[0, c]
+    _put(cnt, cols, vals, 3, 7, -vh[2])
+    _put(cnt, cols, vals, 3, 8, vh[1])
+    _put(cnt, cols, vals, 4, 6, vh[2])
+    _put(cnt, cols, vals, 4, 8, -vh[0])
+    _put(cnt, cols, vals, 5, 6, -vh[1])
+    _put(cnt, cols, vals, 5, 7, vh[0])
     for i in range(N):
         p = xh[13 + 3 * i : 16 + 3 * i]
         for r in range(3):
             for c in range(3):
-                M[r, 12 + 3 * i + c] = -D[r, c] / N
-                M[3 + r, 12 + 3 * i + c] = -OD[r, c] / N
-            M[12 + 3 * i + r, 12 + 3 * i + r] = 1.0
+                _put(cnt, cols, vals, r, 12 + 3 * i + c, -D[r, c] / N)
+                # [omega x] D
+                odc = (wh[(r + 1) % 3] * D[(r + 2) % 3, c] - wh[(r + 2) % 3] * D[(r + 1) % 3, c])
+                _put(cnt, cols, vals, 3 + r, 12 + 3 * i + c, -odc / N)
+            _put(cnt, cols, vals, 12 + 3 * i + r, 12 + 3 * i + r, 1.0)
         # [P_i x] on delta
-        M[12 + 3 * i, 10], M[12 + 3 * i, 11] = -p[2], p[1]
-        M[13 + 3 * i, 9], M[13 + 3 * i, 11] = p[2], -p[0]
-        M[14 + 3 * i, 9], M[14 + 3 * i, 10] = -p[1], p[0]
+        _put(cnt, cols, vals, 12 + 3 * i, 10, -p[2])
+        _put(cnt, cols, vals, 12 + 3 * i, 11, p[1])
+        _put(cnt, cols, vals, 13 + 3 * i, 9, p[2])
+        _put(cnt, cols, vals, 13 + 3 * i, 11, -p[0])
+        _put(cnt, cols, vals, 14 + 3 * i, 9, -p[1])
+        _put(cnt, cols, vals, 14 + 3 * i, 10, p[0])
     for j in range(2):
-        M[ne - 2 + j, ne - 2 + j] = 1.0
-    starts = (0, 3, 6, 9, 12, 12 + 3 * N)
-    stops = (3, 6, 9, 12, 12 + 3 * N, ne)
+        _put(cnt, cols, vals, ne - 2 + j, ne - 2 + j, 1.0)
     for b in range(6):
-        m = stops[b] - starts[b]
-        rows_b = np.arange(starts[b], stops[b])
-        _sandwich(M, rows_b, P, Y, S)
-        out[2 + b] = _mahalanobis(eps[starts[b] : stops[b]], S[:m, :m], L[:m, :m], w)
+        lo = (0, 3, 6, 9, 12, 12 + 3 * N)[b]
+        hi = (3, 6, 9, 12, 12 + 3 * N, ne)[b]
+        m = hi - lo
+        _block(cnt, cols, vals, lo, hi, P, Y, C)
+        out[2 + b] = _mahalanobis(eps[lo:hi], C[:m, :m], Lb[:m, :m], u)
+    return True
 
 
 @njit(**_JIT)
 def nees_batch(x_hat, P, x_true):
-    """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring); ``x_true`` per trial ``(B, n)``."""
+    """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
+
+    ``pd``: the estimate and covariance are finite and ``P`` is positive definite (its Cholesky
+    factorization, that of the full NEES, went through); where not, every NEES is NaN.
+    """
     B, n = x_hat.shape
     ne = n - 1
     N = (n - 15) // 3
     out = np.full((B, 8), np.nan)
+    pd = np.zeros(B, np.bool_)
     e = np.empty(ne)
     eps = np.empty(ne)
-    M = np.empty((ne, ne))
-    W = np.empty((ne - 3, ne))
-    S = np.empty((ne, ne))
+    cnt = np.zeros(ne, np.int64)
+    cols = np.zeros((ne, 3 + 3 * N), np.int64)
+    vals = np.zeros((ne, 3 + 3 * N))
+    C = np.empty((ne, ne))
     L = np.empty((ne, ne))
+    Lb = np.empty((ne, ne))
     w = np.empty(ne)
+    U = np.empty((3, ne))
+    u = np.empty(ne)
     Y = np.empty((ne, ne))
     D = np.empty((3, 3))
     Dt = np.empty((3, 3))
     R = np.empty((3, 3))
     dq = np.empty(4)
     tmp = np.empty(4)
+    v3 = np.empty((6, 3))
     for t in range(B):
         ok = True
         for j in range(n):
@@ -232,13 +280,19 @@ def nees_batch(x_hat, P, x_true):
                 if not math.isfinite(P[t, r, c]):
                     ok = False
         if ok:
-            _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, M, W, S, L, w, Y, D, Dt, R, dq, tmp)
-    return out
+            pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
+                         R, dq, tmp, v3)  # fmt: skip
+    return out, pd
 
 
 def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> dict[str, np.ndarray]:
     """``core.aligned.nees_report`` on the compiled kernel (same keys, same values to round-off)."""
+    return nees_and_pd(x_hat, P, x_true)[0]
+
+
+def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
     x_hat = np.ascontiguousarray(x_hat, dtype=float)
-    out = nees_batch(x_hat, np.ascontiguousarray(P, dtype=float),
-                     np.ascontiguousarray(np.broadcast_to(x_true, x_hat.shape), dtype=float))  # fmt: skip
-    return {k: out[:, j] for j, k in enumerate(KEYS)}
+    out, pd = nees_batch(x_hat, np.ascontiguousarray(P, dtype=float),
+                        np.ascontiguousarray(np.broadcast_to(x_true, x_hat.shape), dtype=float))  # fmt: skip
+    return {k: out[:, j] for j, k in enumerate(KEYS)}, pd

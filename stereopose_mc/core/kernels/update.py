@@ -45,9 +45,23 @@ CONTROL = {"none": 0, "line_search": 1}
 def _cholesky(A, L):
     """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
 
-    Left-looking on ``U = L^T``, held by rows in the upper triangle of ``L`` (transposed at the
-    end): row ``j`` of ``U`` is row ``j`` of ``A``'s upper triangle minus a combination of the
-    rows above it (``_combine``), divided by the square root of its pivot.
+    LAPACK's ``potrf`` through ``np.linalg.cholesky`` (Numba's binding of the BLAS/LAPACK that
+    scipy ships), which raises on a matrix that is not positive definite or not finite.
+    """
+    try:
+        L[:, :] = np.linalg.cholesky(A)
+    except Exception:  # Numba's LinAlgError (not positive definite, or not finite)
+        return False
+    return True
+
+
+@njit(**_JIT)
+def _cholesky_small(A, L):
+    """``_cholesky`` written out (left-looking), for the small blocks where LAPACK's call costs more than the work.
+
+    Row ``j`` of ``U = L^T`` (held in the upper triangle of ``L``, transposed at the end) is row
+    ``j`` of ``A``'s upper triangle minus a combination of the rows above it, divided by the
+    square root of its pivot.
     """
     n = A.shape[0]
     for i in range(n):
@@ -233,30 +247,27 @@ def _normalize_q(x):
 
 
 @njit(**_JIT)
-def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
+def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, Hd):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
 
-    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
-    past ``n``, those of virtual columns, ``_with_virtual``, are read in full); then the lower
-    triangle of ``A`` row by row, ``A[i, :i+1] = I + sum_r Hw[r, i] Hw[r, :i+1]`` (``_combine``).
+    ``R^-1/2 H`` is scattered into the dense ``Hd (m, n + virtual)`` and multiplied by ``L``
+    (its rows past ``n``, those of the virtual columns, ``_with_virtual``) by BLAS, as is
+    ``Hw^T Hw`` (``np.dot``); ``A``'s lower triangle is mirrored (exactly symmetric).
     """
     m, n = Hw.shape
     for r in range(m):
         rw[r] = (yb[r] - hx[r]) * rws[r]
-        for j in range(n):
-            Hw[r, j] = 0.0
-        for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
-            s = rws[r]
-            h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
-            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
-                c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
-                for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
-                    Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+        for j in range(Hd.shape[1]):
+            Hd[r, j] = 0.0
+        s = rws[r]
+        for k in range(NNZ):
+            h = Hval[r, k]
+            if h != 0.0:
+                Hd[r, cols[r, k]] += h * s
+    np.dot(Hd, L, Hw)  # BLAS gemm
+    np.dot(Hw.T, Hw, A)
     for i in range(n):
-        for j in range(i + 1):
-            A[i, j] = 0.0
-        A[i, i] = 1.0
-        _combine(A[i], 0, i + 1, Hw, Hw[:, i], 0, m, 1.0)
+        A[i, i] += 1.0
     _mirror_lower(A)
 
 
@@ -296,7 +307,8 @@ def _mul_t(M, v, out):
 
 @njit(**_JIT)
 def _posterior_covariance(L, LA, out, X):
-    """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``."""
+    """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``
+    (BLAS, lower triangle mirrored: exactly symmetric)."""
     n = L.shape[0]
     for i in range(n):
         for j in range(n):
@@ -305,10 +317,7 @@ def _posterior_covariance(L, LA, out, X):
         d = LA[i, i]
         for j in range(n):
             X[i, j] /= d
-    for i in range(n):
-        for j in range(i + 1):
-            out[i, j] = 0.0
-        _combine(out[i], 0, i + 1, X, X[:, i], 0, n, 1.0)
+    np.dot(X.T, X, out)  # BLAS gemm
     _mirror_lower(out)
 
 
@@ -348,6 +357,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     L = np.empty((n, n))
     Laug = np.empty((n + (3 if chart == 1 else 0), n))
     Hw = np.empty((m, n))
+    Hd = np.empty((m, n + (3 if chart == 1 else 0)))
     rw = np.empty(m)
     v = np.empty(m)
     A = np.empty((n, n))
@@ -380,7 +390,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                     D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
-        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
+        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, Hd)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -403,6 +413,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             z[i] = 0.0
         _keep_linearization(A, Afin)
         failed = False
+        fresh = True
         for it in range(max_iter):
             # z_GN = A^-1 Hw^T (rw + Hw z)
             for r in range(m):
@@ -414,6 +425,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             if it > 0 and not _cholesky(A, LA):
                 failed = True
                 break
+            fresh = True  # LA is the factor of this iterate's A
             _chol_solve(LA, zn)
             accepted = True
             c_new = cost
@@ -469,6 +481,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             small = accepted and size < tol
             if accepted:
                 _keep_linearization(A, Afin)
+            else:
+                fresh = False  # Afin is an earlier iterate's: factorize it again below
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
@@ -480,8 +494,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                         D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
-            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
-        if failed or not _cholesky(Afin, LA):
+            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, Hd)
+        if failed or not (fresh or _cholesky(Afin, LA)):
             ok[b] = False
             continue
         _lower_mul(L, z, e)
