@@ -29,12 +29,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
+from ..core.kernels import aligned as ka
 from ..core.kernels import model as km
+from ..core.kernels import update as ku
 from ..core.orbit import leader_kinematics
 from . import estimators, relnav
 
 Array = NDArray[np.float64]
 COMPILED_KINDS = ("ekf", "iekf", "mekf")  # filter types whose predict/update have compiled kernels
+_CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
 FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
 
@@ -56,7 +59,14 @@ def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Ar
 
 
 def _q_batch(Q: Array, B: int, n: int) -> Array:
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
+    """``Q (n,)`` repeated for ``B`` trials (kept per ``Q`` and ``B``: the kernels do not write it)."""
+    key = (id(Q), B, n)
+    hit = _CONSTANTS.get(key)
+    if hit is not None and hit[0] is Q:
+        return hit[2]
+    out = np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
+    _CONSTANTS[key] = (Q, None, out)
+    return out
 
 
 def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None) -> Array:
@@ -87,12 +97,13 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     h = setup.dt / fs.substeps
     # the leader once for all the RK4 stage times; the first is t, where F is evaluated
     r, nd, ndd = _leader(setup.orbit, float(t), h, 2 * fs.substeps + 1)
-    T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
-    x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
+    if fs.transition == "expm":
+        T = transition_block(x, t, fs, setup, (float(r[0]), float(nd[0]), float(ndd[0])))
+        x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
+    else:  # the same kernels in one call
+        x_pred, T = km.predict_state_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, setup.dt, fs.taylor_order)
     if chart == 1:
-        from ..core.kernels import aligned as ka
-
-        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
+            return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
 
@@ -101,8 +112,6 @@ def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd:
 
     ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1: ``mekf.error_measurement`` at ``e = 0``.
     """
-    from ..core.kernels import aligned as ka
-
     C = 9 if setup.disparity else 8
     args = (vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha, nd, ndd, True)
     if chart == 0:
@@ -123,7 +132,10 @@ def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> di
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
-    if not supported(fs) or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
+    hit = _CONSTANTS.get(("supported", id(fs)))
+    if hit is None or hit[0] is not fs:
+        hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
+    if not hit[2] or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
         return estimators.update(x, P, step, rows, fs, setup)  # UKF, attitude chart, LM, full state's first iterated
     return compiled_update(x, P, step, rows, fs, setup)
 
@@ -136,6 +148,30 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
     return mask
 
 
+def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -> tuple:
+    """``(vis, C, m, R (b, m) or None, cols, mask of ones (b, m))`` for this filter, visibility and batch size.
+
+    The same at every step where the same features are visible: kept (a few entries per
+    run) so that a step does not rebuild them; ``R`` is None when the pseudo rows' variance
+    comes per trial (``alpha_var``). Shared between steps: the kernels never write their inputs.
+    """
+    key = (id(fs), id(setup), visible.tobytes(), b, ne)
+    hit = _CONSTANTS.get(key)
+    if hit is not None and hit[0] is fs and hit[1] is setup:
+        return hit[2]
+    vis = np.flatnonzero(visible).astype(np.int64)
+    C = 9 if setup.disparity else 8
+    m = vis.size * C + (3 if setup.pseudo else 0)
+    R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)), dtype=float)
+    cols = (ka if chart_code(fs) == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
+    out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)))
+    if len(_CONSTANTS) > 256:
+        _CONSTANTS.clear()
+    _CONSTANTS[key] = (fs, setup, out)  # the objects themselves: an id is never reused while they are held
+    return out
+
+
+
 def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """``estimators.update`` (EKF or IEKF, gating, fault masks) on the fused kernels of ``core.kernels.update``.
 
@@ -144,31 +180,35 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     filter that is losing track) is updated by ``estimators.update``, so it meets numpy's
     solvers and their errors exactly as with ``--kernels numpy``.
     """
-    from ..core.kernels import aligned as ka
-    from ..core.kernels import update as ku
-    from . import gating
-
     chart, iterated = chart_code(fs), _iterated(fs, setup, step)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     b, ne = P.shape[:2]
-    _, nd, ndd = (float(v[0]) for v in _leader(setup.orbit, float(step.t)))
-    vis = np.flatnonzero(step.visible).astype(np.int64)
-    nvis, C = vis.size, (9 if setup.disparity else 8)
-    y = np.ascontiguousarray(step.y[rows], dtype=float)
-    m = y.shape[-1]
-    R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(
-        fs, setup, nvis, None if step.alpha_var is None else step.alpha_var[rows]), (b, m)), dtype=float)  # fmt: skip
-    alpha = np.ascontiguousarray(step.alpha[rows] if setup.pseudo else np.zeros((b, 3)), dtype=float)
+    _, nd, ndd = _leader(setup.orbit, float(step.t))
+    nd, ndd = float(nd[0]), float(ndd[0])
+    vis, C, m, R, cols, ones, zeros3 = _constants(fs, setup, step.visible, b, ne)
+    nvis = vis.size
+    # rows: increasing trial indices into the step's batch (mc.trial's active set); all of them: no gather
+    every = rows.size == step.y.shape[0] and rows.size > 0 and rows[0] == 0 and rows[-1] == rows.size - 1
+    y = np.ascontiguousarray(step.y if every else step.y[rows], dtype=float)
+    if step.alpha_var is not None and setup.pseudo:  # per-trial pseudo-row variances
+        R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, step.alpha_var[rows]),
+                                                 (b, m)), dtype=float)  # fmt: skip
+    alpha = np.ascontiguousarray(step.alpha if every else step.alpha[rows], dtype=float) if setup.pseudo else zeros3
     keep = None if step.feature_mask is None else step.feature_mask[rows]
     rejected = np.zeros(b, int)
     if fs.gate_probability is not None and nvis:
+        from . import gating
+
         hx, H = linearized(x, alpha, vis, setup, nd, ndd, chart, ne)
         d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
         keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
-    used = np.full(b, nvis) if keep is None else keep.sum(axis=-1)
-    mask = _row_mask(keep, b, m, C)
-    cols = (ka if chart == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
+    if keep is None:
+        used = np.empty(b, np.int64)
+        used.fill(nvis)
+    else:
+        used = keep.sum(axis=-1)
+    mask = ones if keep is None else _row_mask(keep, b, m, C)
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
             nd, ndd, cols, chart)  # fmt: skip
     if iterated is None:
@@ -178,7 +218,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
-    if not ok.all():  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
+    if np.count_nonzero(ok) < b:  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
         u = _patch(u, ~ok, estimators.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
     return u
 
@@ -198,8 +238,6 @@ def _patch(u, bad: Array, v):
 def supported(fs: FilterSetup) -> bool:
     """Filters the compiled update covers (others run ``estimators.update``): the EKF and the IEKF in the full
     state or the aligned error state and the aligned MEKF, their iterated updates with line search or none."""
-    from ..core.kernels import update as ku
-
     if chart_code(fs) is None:
         return False
     iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)

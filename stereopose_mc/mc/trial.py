@@ -140,12 +140,12 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = No
     lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
     over = err > lim
     names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
-    for i in range(B):
+    for i in np.flatnonzero(~finite | ~pd | over.any(axis=-1)):
         if not finite[i]:
             reasons[i] = "non-finite state or covariance"
         elif not pd[i]:
             reasons[i] = "covariance not positive definite"
-        elif over[i].any():
+        else:
             j = int(np.argmax(over[i]))
             reasons[i] = f"error bound exceeded: e_{names[j]} = {err[i, j]:.3g} > {lim[j]:g}"
     return reasons

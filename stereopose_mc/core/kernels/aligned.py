@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _combine, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
+from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -352,18 +352,22 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     idx = np.empty(ne, np.int64)
     val = np.empty(ne)
     PS = np.empty((n, ne))
+    Sc = np.empty((15, ne))
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
     e0 = np.zeros(ne)
     for b in range(B):
         _chart_jacobian(x[b], e0, S)
         _error_map(x_pred[b], T)
-        for a in range(n):
+        for a in range(13, n):
             for j in range(ne):
-                PS[a, j] = S[a, j] if a >= 13 else 0.0
-        for a in range(13):  # (Phi S)[0:13] = Tb S[c], c = [0..12, n-2, n-1]
-            _combine(PS[a], 0, ne, S, Tb[b, a], 0, 13, 1.0)
-            _combine(PS[a], 0, ne, S[n - 15 :], Tb[b, a], 13, 15, 1.0)
+                PS[a, j] = S[a, j]
+        for j in range(ne):  # S[c], c = [0..12, n-2, n-1]
+            for a in range(13):
+                Sc[a, j] = S[a, j]
+            Sc[13, j] = S[n - 2, j]
+            Sc[14, j] = S[n - 1, j]
+        np.dot(Tb[b], Sc, PS[:13])  # (Phi S)[0:13] = Tb S[c] (BLAS gemm)
         for r in range(ne):  # Phi_e = T (Phi S)
             for j in range(ne):
                 Y[r, j] = 0.0

@@ -348,12 +348,7 @@ def _taylor_reduced(Fr, dt, order, T, A, tmp):
             A[i, j] = Fr[i, j] * dt if i < 13 else 0.0
             T[i, j] = (1.0 if i == j else 0.0) + A[i, j] / order
     for jj in range(order - 1, 0, -1):
-        for i in range(13):
-            for j in range(15):
-                s = 0.0
-                for l in range(15):
-                    s += A[i, l] * T[l, j]
-                tmp[i, j] = s
+        np.dot(A[:13], T, tmp)  # BLAS gemm (rows 13, 14 of A are zero)
         for i in range(13):
             for j in range(15):
                 T[i, j] = (1.0 if i == j else 0.0) + tmp[i, j] / jj
@@ -378,6 +373,14 @@ def transition_reduced_batch(Fr, dt, order):
             for j in range(15):
                 out[b, i, j] = T[i, j]
     return out
+
+
+@njit(**_JIT)
+def predict_state_batch(x, rL, nd, ndd, h, mu, substeps, dt, order):
+    """``(x-, Phi[:, 0:13, c])``: ``propagate_batch`` (quaternion renormalized) and ``transition_reduced_batch``
+    of ``F_reduced_batch`` at ``x`` (the leader at ``rL[0], nd[0], ndd[0]``), in one call."""
+    Fr = F_reduced_batch(x, rL[0], nd[0], ndd[0], mu)
+    return propagate_batch(x, rL, nd, ndd, h, mu, substeps, True), transition_reduced_batch(Fr, dt, order)
 
 
 @njit(**_JIT)

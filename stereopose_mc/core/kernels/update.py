@@ -32,7 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .aligned import E_POINTS, _chart, _measure_aligned, augment
+from .aligned import _chart, _measure_aligned, augment
 from .model import NNZ, _combine, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -153,89 +153,17 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
 
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
     of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
-    ``x+ = x [+] e+``). ``P+`` is the Joseph form of ``kalman.ekf_update`` evaluated, for its
-    optimal gain, as ``P - (Ls^-1 H P)^T (Ls^-1 H P)`` (``S = Ls Ls^T``): the same matrix to
-    round-off, exactly symmetric, at a third of the cost.
+    ``x+ = x [+] e+``). Evaluated as one Gauss-Newton step of ``iekf_update_batch`` from the
+    prior (whitened, ``P = L L^T``, ``Hw = R^-1/2 H L``, ``A = I + Hw^T Hw``): by the matrix
+    inversion lemma ``L A^-1 Hw^T R^-1/2 = P H^T S^-1 = K``, ``L A^-1 L^T = P - K S K^T`` (the
+    Joseph form of ``kalman.ekf_update`` for its optimal gain) and ``nu^T S^-1 nu = |rw|^2 -
+    g^T A^-1 g``: the same numbers to round-off, with an ``n x n`` system instead of the
+    ``m x m`` one (``m = 8N + 3 > n = 3N + 15``).
 
     Returns ``(x+, P+, nu, nis, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
-    B, n = x.shape
-    ne = P.shape[1]
-    nv = ne + (3 if chart == 1 else 0)  # columns of H, virtual ones included
-    m = y.shape[1]
-    xo = np.empty((B, n))
-    Po = np.empty((B, ne, ne))
-    nu = np.empty((B, m))
-    nis = np.empty(B)
-    ok = np.ones(B, np.bool_)
-    hx = np.empty(m)
-    Hval = np.zeros((m, NNZ))
-    Paug = np.empty((nv, ne))
-    HP = np.empty((m, nv))
-    S = np.empty((m, m))
-    Ls = np.empty((m, m))
-    Z = np.empty((m, ne + 1))
-    e = np.zeros(ne)
-    xt = np.empty(n)
-    D = np.empty((3, 3))
-    dD = np.empty((4, 3, 3))
-    for b in range(B):
-        for i in range(ne):
-            e[i] = 0.0
-        _measure_at(chart, x[b], e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
-                    D, dD)  # fmt: skip
-        _masked(hx, Hval, y[b], mask[b])
-        _with_virtual(chart, P[b], Paug)
-        for r in range(m):
-            nu[b, r] = y[b, r] - hx[r]
-            for j in range(ne):
-                HP[r, j] = 0.0
-            for k in range(NNZ):
-                h = Hval[r, k]
-                if h != 0.0:
-                    c = cols[r, k]
-                    for j in range(ne):
-                        HP[r, j] += h * Paug[c, j]
-        if chart == 1:  # H P's virtual columns: the sums over the points
-            for r in range(m):
-                for a in range(3):
-                    s = 0.0
-                    for p in range((ne - 14) // 3):
-                        s += HP[r, E_POINTS + 3 * p + a]
-                    HP[r, ne + a] = s
-        for r in range(m):
-            for q in range(r + 1):
-                s = 0.0
-                for k in range(NNZ):
-                    s += HP[r, cols[q, k]] * Hval[q, k]
-                S[r, q] = s
-            S[r, r] += R[b, r]
-        if not _cholesky(S, Ls):
-            ok[b] = False
-            continue
-        # W = Ls^-1 [H P | nu] (forward substitution by rows): with K = P H^T S^-1,
-        # K nu = W[:, :n]^T W[:, n], nis = |W[:, n]|^2 and the Joseph form with this optimal gain,
-        # (I - K H) P (I - K H)^T + K R K^T = P - K S K^T = P - W[:, :n]^T W[:, :n]
-        for r in range(m):
-            for j in range(ne):
-                Z[r, j] = HP[r, j]
-            Z[r, ne] = nu[b, r]
-            _combine(Z[r], 0, ne + 1, Z, Ls[r], 0, r, -1.0)
-            d = Ls[r, r]
-            for j in range(ne + 1):
-                Z[r, j] /= d
-        v = 0.0
-        for r in range(m):
-            v += Z[r, ne] * Z[r, ne]
-        _combine(e, 0, ne, Z, Z[:, ne], 0, m, 1.0)
-        Pb = Po[b]
-        for i in range(ne):
-            for j in range(i + 1):
-                Pb[i, j] = P[b, i, j]
-            _combine(Pb[i], 0, i + 1, Z, Z[:, i], 0, m, -1.0)
-        _mirror_lower(Pb)
-        nis[b] = v
-        _reset(chart, x[b], e, xo[b])
+    xo, Po, nu, nis, _, _, ok = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha,
+                                                  nd, ndd, cols, chart, 0.0, 1, 0, 1, 0)  # fmt: skip
     return xo, Po, nu, nis, ok
 
 
@@ -247,25 +175,26 @@ def _normalize_q(x):
 
 
 @njit(**_JIT)
-def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, Hd):
+def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``A = I + Hw^T Hw`` (full, symmetric).
 
-    ``R^-1/2 H`` is scattered into the dense ``Hd (m, n + virtual)`` and multiplied by ``L``
-    (its rows past ``n``, those of the virtual columns, ``_with_virtual``) by BLAS, as is
-    ``Hw^T Hw`` (``np.dot``); ``A``'s lower triangle is mirrored (exactly symmetric).
+    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
+    past ``n``, those of virtual columns, ``_with_virtual``, are read in full); then
+    ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly symmetric).
     """
     m, n = Hw.shape
     for r in range(m):
         rw[r] = (yb[r] - hx[r]) * rws[r]
-        for j in range(Hd.shape[1]):
-            Hd[r, j] = 0.0
-        s = rws[r]
-        for k in range(NNZ):
-            h = Hval[r, k]
-            if h != 0.0:
-                Hd[r, cols[r, k]] += h * s
-    np.dot(Hd, L, Hw)  # BLAS gemm
-    np.dot(Hw.T, Hw, A)
+        for j in range(n):
+            Hw[r, j] = 0.0
+        for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
+            s = rws[r]
+            h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
+            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
+                c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
+                for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
+                    Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+    np.dot(Hw.T, Hw, A)  # BLAS gemm
     for i in range(n):
         A[i, i] += 1.0
     _mirror_lower(A)
@@ -357,7 +286,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     L = np.empty((n, n))
     Laug = np.empty((n + (3 if chart == 1 else 0), n))
     Hw = np.empty((m, n))
-    Hd = np.empty((m, n + (3 if chart == 1 else 0)))
     rw = np.empty(m)
     v = np.empty(m)
     A = np.empty((n, n))
@@ -390,7 +318,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                     D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
-        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, Hd)
+        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -415,18 +343,22 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         failed = False
         fresh = True
         for it in range(max_iter):
-            # z_GN = A^-1 Hw^T (rw + Hw z)
-            for r in range(m):
-                s = rw[r]
-                for j in range(n):
-                    s += Hw[r, j] * z[j]
-                v[r] = s
-            _mul_t(Hw, v, zn)
-            if it > 0 and not _cholesky(A, LA):
-                failed = True
-                break
+            # z_GN = A^-1 Hw^T (rw + Hw z); from the prior (z = 0) that is d = A^-1 g of the NIS above
+            if it == 0:
+                for i in range(n):
+                    zn[i] = d[i]
+            else:
+                for r in range(m):
+                    s = rw[r]
+                    for j in range(n):
+                        s += Hw[r, j] * z[j]
+                    v[r] = s
+                _mul_t(Hw, v, zn)
+                if not _cholesky(A, LA):
+                    failed = True
+                    break
+                _chol_solve(LA, zn)
             fresh = True  # LA is the factor of this iterate's A
-            _chol_solve(LA, zn)
             accepted = True
             c_new = cost
             if control == 1:  # backtracking line search on the MAP cost
@@ -494,7 +426,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                         D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
-            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, Hd)
+            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
         if failed or not (fresh or _cholesky(Afin, LA)):
             ok[b] = False
             continue
