@@ -94,6 +94,9 @@ class BenchConfig:
     memory_interval_s: float = 0.1
     # FilterPy baseline
     baseline_trials: int = 20
+    # `steps`: ours against FilterPy per computed step, run as the engine runs a chunk (the first
+    # `baseline_trials` of them are FilterPy's trials)
+    baseline_batch: int = 250
     keep_runs: bool = False
     blas_threads: int | None = None  # OPENBLAS/OMP/MKL_NUM_THREADS for the spmc subprocesses (None: as is)
     inproc_threads: int | None = 1  # BLAS threads of the in-process sections (the engine's chunks use 1)
@@ -107,7 +110,7 @@ class BenchConfig:
         base = dict(
             mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
             feature_points=(5, 10, 20),
-            scaling_batch=20, scaling_steps=2, memory_trials=1000, baseline_trials=20,
+            scaling_batch=20, scaling_steps=2, memory_trials=1000, baseline_trials=20, baseline_batch=20,
         )  # fmt: skip
         base.update(kw)
         return cls(**base)

@@ -78,3 +78,20 @@ def test_pd_flag_is_the_factorization_of_P():
     P[1] = -P[1]
     _, pd = kc.nees_and_pd(xh, P, xt)
     assert pd.tolist() == [True, False, True]
+
+
+def test_full_state_covariance_is_mapped_like_the_numpy_path():
+    """A full-state filter's ``P (n x n)`` enters as ``T P T^T`` (``mc.trial.aligned_covariance``): same NEES."""
+    from stereopose_mc.mc import trial
+
+    xh, _, xt = _case(25, 4)
+    n = xh.shape[-1]
+    A = RNG.standard_normal((25, n, n))
+    P = A @ A.transpose(0, 2, 1) / n * 1e-3 + 1e-6 * np.eye(n)
+    ref = trial.nees_of(xh, P, xt, "full", "numpy")
+    got, pd = kc.nees_and_pd(xh, P, xt)
+    assert pd.all()
+    for k in kc.KEYS:
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-9, err_msg=k)
+    P[3] = -P[3]  # not positive definite: flagged (the engine's divergence check reads the flag)
+    assert not kc.nees_and_pd(xh, P, xt)[1][3]

@@ -28,7 +28,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import _dcm
+from .aligned import _error_map
+from .model import _dcm, _mirror_lower
 from .update import _cholesky, _cholesky_small
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -244,14 +245,23 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
 def nees_batch(x_hat, P, x_true):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
-    ``pd``: the estimate and covariance are finite and ``P`` is positive definite (its Cholesky
-    factorization, that of the full NEES, went through); where not, every NEES is NaN.
+    ``P``: the aligned error state's ``(B, n-1, n-1)``, or the full state's ``(B, n, n)`` (a
+    full-state filter's), mapped to the aligned chart at the estimate as ``T P T^T``, ``T =
+    aligned.error_map(x_hat)`` (``mc.trial.aligned_covariance``). ``pd``: the estimate and
+    covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
+    went through). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
+    covariance is not positive definite.
     """
     B, n = x_hat.shape
     ne = n - 1
     N = (n - 15) // 3
+    full = P.shape[1] == n
     out = np.full((B, 8), np.nan)
     pd = np.zeros(B, np.bool_)
+    Tm = np.empty((ne, n))
+    TP = np.empty((ne, n))
+    Pa = np.empty((ne, ne))
+    Lf = np.empty((n, n))
     e = np.empty(ne)
     eps = np.empty(ne)
     cnt = np.zeros(ne, np.int64)
@@ -275,11 +285,21 @@ def nees_batch(x_hat, P, x_true):
         for j in range(n):
             if not (math.isfinite(x_hat[t, j]) and math.isfinite(x_true[t, j])):
                 ok = False
-        for r in range(ne):
-            for c in range(ne):
+        for r in range(P.shape[1]):
+            for c in range(P.shape[2]):
                 if not math.isfinite(P[t, r, c]):
                     ok = False
-        if ok:
+        if not ok:
+            continue
+        if full:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
+            _error_map(x_hat[t], Tm)
+            np.dot(Tm, P[t], TP)  # BLAS gemm
+            np.dot(TP, Tm.T, Pa)
+            _mirror_lower(Pa)
+            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq,
+                 tmp, v3)  # fmt: skip
+            pd[t] = _cholesky(P[t], Lf)
+        else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
                          R, dq, tmp, v3)  # fmt: skip
     return out, pd
