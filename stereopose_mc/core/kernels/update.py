@@ -234,18 +234,41 @@ def _mul_t(M, v, out):
             out[i] += M[r, i] * a
 
 
+SOLVE_BLOCK = 32  # rows per block of the forward substitution in _posterior_covariance
+
+
 @njit(**_JIT)
 def _posterior_covariance(L, LA, out, X):
     """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``
-    (BLAS, lower triangle mirrored: exactly symmetric)."""
+    (BLAS, lower triangle mirrored: exactly symmetric).
+
+    Past ``SOLVE_BLOCK`` rows the substitution is blocked: a block of rows first takes off the
+    contribution of the rows solved before it in one BLAS product (``LA[blk, :i0] X[:i0]``), then
+    solves its own triangle row by row; the flops of a large ``n`` run in BLAS, not in this loop.
+    """
     n = L.shape[0]
-    for i in range(n):
-        for j in range(n):
-            X[i, j] = L[j, i]
-        _combine(X[i], 0, n, X, LA[i], 0, i, -1.0)
-        d = LA[i, i]
-        for j in range(n):
-            X[i, j] /= d
+    nb = SOLVE_BLOCK
+    Xblk = np.empty((min(nb, n), n))
+    for i0 in range(0, n, nb):
+        i1 = min(i0 + nb, n)
+        for i in range(i0, i1):
+            for j in range(n):
+                X[i, j] = L[j, i]
+        if i0 > 0:
+            Lb = np.empty((i1 - i0, i0))
+            Xb = Xblk[: i1 - i0]
+            for i in range(i0, i1):
+                for k in range(i0):
+                    Lb[i - i0, k] = LA[i, k]
+            np.dot(Lb, X[:i0], Xb)  # BLAS gemm
+            for i in range(i0, i1):
+                for j in range(n):
+                    X[i, j] -= Xb[i - i0, j]
+        for i in range(i0, i1):
+            _combine(X[i], 0, n, X, LA[i], i0, i, -1.0)
+            d = LA[i, i]
+            for j in range(n):
+                X[i, j] /= d
     np.dot(X.T, X, out)  # BLAS gemm
     _mirror_lower(out)
 
