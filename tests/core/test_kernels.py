@@ -142,3 +142,16 @@ def test_posterior_covariance_blocked_substitution(n):
     ref = L @ np.linalg.solve(A, L.T)
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(out, out.T)
+
+
+@pytest.mark.parametrize("n", [7, 32, 33, 70, 100])
+def test_gram_lower_blocked(n):
+    """The lower triangle of ``M^T M`` (blocked past 32 columns) equals numpy's product."""
+    from stereopose_mc.core.kernels import update as ku
+
+    M = np.random.default_rng(n).standard_normal((2 * n + 3, n))
+    G = np.full((n, n), np.nan)
+    ku._gram_lower(M, G)
+    ref = M.T @ M
+    il = np.tril_indices(n)
+    np.testing.assert_allclose(G[il], ref[il], rtol=0, atol=1e-12 * np.abs(ref).max())

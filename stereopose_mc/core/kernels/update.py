@@ -39,6 +39,7 @@ _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
 CONTROL = {"none": 0, "line_search": 1}
+SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
 
 
 @njit(**_JIT)
@@ -194,10 +195,37 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
                 c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
                 for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
                     Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
-    np.dot(Hw.T, Hw, A)  # BLAS gemm
+    _gram_lower(Hw, A)
     for i in range(n):
         A[i, i] += 1.0
     _mirror_lower(A)
+
+
+@njit(**_JIT)
+def _gram_lower(M, G):
+    """The lower triangle of ``G = M^T M`` (``M (m, n)``) by BLAS: one product up to ``SOLVE_BLOCK`` columns,
+    else the blocks on and below the diagonal only (about half the flops of the full product)."""
+    m, n = M.shape
+    nb = SOLVE_BLOCK
+    if n <= nb:
+        np.dot(M.T, M, G)
+        return
+    MT = np.ascontiguousarray(M.T)
+    tmp = np.empty((nb, nb))
+    for i0 in range(0, n, nb):
+        i1 = min(i0 + nb, n)
+        for j0 in range(0, i0 + 1, nb):
+            j1 = min(j0 + nb, n)
+            t = tmp[: i1 - i0, : j1 - j0]
+            if i1 - i0 == nb and j1 - j0 == nb:
+                np.dot(MT[i0:i1], MT[j0:j1].T, tmp)
+            else:
+                t2 = np.empty((i1 - i0, j1 - j0))
+                np.dot(MT[i0:i1], MT[j0:j1].T, t2)
+                t = t2
+            for i in range(i0, i1):
+                for j in range(j0, min(j1, i + 1)):
+                    G[i, j] = t[i - i0, j - j0]
 
 
 @njit(**_JIT)
@@ -234,9 +262,6 @@ def _mul_t(M, v, out):
             out[i] += M[r, i] * a
 
 
-SOLVE_BLOCK = 32  # rows per block of the forward substitution in _posterior_covariance
-
-
 @njit(**_JIT)
 def _posterior_covariance(L, LA, out, X):
     """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``
@@ -269,7 +294,7 @@ def _posterior_covariance(L, LA, out, X):
             d = LA[i, i]
             for j in range(n):
                 X[i, j] /= d
-    np.dot(X.T, X, out)  # BLAS gemm
+    _gram_lower(X, out)  # X^T X (BLAS)
     _mirror_lower(out)
 
 
