@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.integrate import solve_ivp
 
 from ..config.resolve import Setup
 from ..core import dynamics, state as st
@@ -55,6 +54,8 @@ def integrate(x0: Array, t: Array, setup: Setup, rtol: float) -> Array:
 
     def rhs(tt, y):
         return dynamics.f_at(y, tt, orbit)
+
+    from scipy.integrate import solve_ivp  # here, not at import: ~0.2 s, and a cached truth needs none
 
     sol = solve_ivp(rhs, (t[0], t[-1]), x0, method="DOP853", t_eval=t, rtol=rtol, atol=rtol * scale * 1e-2)
     if not sol.success:  # pragma: no cover - DOP853 on a smooth problem
