@@ -46,7 +46,8 @@ from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
 from ..outputs import integrity, rundir, runlock, tables
 from ..sim import measurements as meas
-from ..sim.truth import Truth, simulate_truth
+from ..sim.truth import Truth
+from ..sim.truth_cache import cached_truth
 from . import dispersed
 from .trial import Bounds, run_chunk
 
@@ -79,9 +80,13 @@ class Prepared(NamedTuple):
 
 
 def prepare(scn: Scenario) -> Prepared:
-    """Resolve a scenario and compute its (trial-independent) truth and exact measurements."""
+    """Resolve a scenario and compute its (trial-independent) truth and exact measurements.
+
+    The truth comes from the on-disk truth cache when it has it (``sim/truth_cache.py``:
+    the same bits; ``SPMC_NO_CACHE=1`` turns it off).
+    """
     setup = setup_of(scn)
-    truth = simulate_truth(setup)
+    truth = cached_truth(setup)
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence

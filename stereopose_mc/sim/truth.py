@@ -70,7 +70,8 @@ def simulate_truth(setup: Setup) -> Truth:
     x = integrate(setup.x0, t, setup, setup.truth_rtol)
     x[:, st.QUAT] = qt.normalize(x[:, st.QUAT])
     lk = leader_kinematics(setup.orbit, t)
-    alpha = dynamics.f(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)[:, st.OMEGA]
+    # contiguous (not a view of f's output): the truth cache stores and gives back this memory layout
+    alpha = np.ascontiguousarray(dynamics.f(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)[:, st.OMEGA])
     return Truth(t=t, nu=lk.nu, nu_dot=lk.nu_dot, nu_ddot=lk.nu_ddot, x=x, alpha=alpha)
 
 
