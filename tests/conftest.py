@@ -8,6 +8,16 @@ import pytest
 from scenarios import write_scenario
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _session_truth_cache(tmp_path_factory):
+    """The truth cache (sim/truth_cache.py) of this test session in its own directory, never ~/.cache:
+    the suite's runs fill it and use it (subprocesses inherit the variable)."""
+    mp = pytest.MonkeyPatch()
+    mp.setenv("SPMC_CACHE_DIR", str(tmp_path_factory.mktemp("spmc-cache")))
+    yield
+    mp.undo()
+
+
 @pytest.fixture
 def small_caseB(tmp_path) -> Path:
     """Case B cut to 6 trials of 20 s (window from 5 s)."""

@@ -7,8 +7,6 @@ import time
 from contextlib import contextmanager
 from typing import Iterator
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 
 def diverged_text(diverged: dict[str, int]) -> str:
@@ -47,6 +45,10 @@ def progress_reporter(label: str, quiet: bool = False) -> Iterator:
     if quiet:
         yield None
         return
+    from rich.console import Console  # here, not at import: a --quiet run never loads rich
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)  # fmt: skip
+
     console = Console(stderr=True)
     if not console.is_terminal:
         yield _Plain(label)

@@ -8,8 +8,6 @@ from typing import Optional
 
 import typer
 
-from ..config import ScenarioError
-from ..outputs.rundir import RunDirError
 from .app import app, fail
 
 
@@ -31,7 +29,9 @@ def sweep(
     Writes DIR/sweep.json, one run directory per point, DIR/percentiles.csv (all points;
     `spmc compare` takes two sweeps) and the sweep report (DIR/report.html, sweep.csv).
     """
+    from ..config import ScenarioError  # here, not at import: `spmc --help` stays fast
     from ..mc import engine
+    from ..outputs.rundir import RunDirError
     from ..studies import sweep as sw
     from .progress import progress_reporter
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import solve_discrete_lyapunov
 
 Array = NDArray[np.float64]
 
@@ -269,6 +268,8 @@ def td_noise_gain(dt: float, h0: float) -> float:
     Phi, b = td_linear_system(dt, h0)
     if not 0.0 < dt / h0 < 2.0:
         raise ValueError(f"tracking differentiator unstable in its linear zone: dt/h0 = {dt / h0} not in (0, 2)")
+    from scipy.linalg import solve_discrete_lyapunov  # here, not at import: scipy.linalg costs ~0.1 s
+
     S = solve_discrete_lyapunov(Phi, np.outer(b, b))
     return float(S[1, 1])
 

@@ -16,7 +16,6 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
 
 Array = NDArray[np.float64]
 
@@ -37,6 +36,8 @@ def transition_matrix(F: Array, dt: float, method: str = "taylor", order: int = 
     """
     A = F * dt
     if method == "expm":
+        from scipy.linalg import expm  # here, not at import: scipy.linalg costs ~0.1 s, Taylor is the default
+
         return expm(A)
     n = F.shape[-1]
     eye = np.eye(n)

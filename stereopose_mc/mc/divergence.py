@@ -14,11 +14,41 @@ Such a trial is not counted as converged: its reason starts with ``inconsistent`
 
 from __future__ import annotations
 
+import functools
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import chdtri  # chi-square inverse survival function (scipy.stats costs ~0.2 s to import)
 
 Array = NDArray[np.float64]
+CHI2_TABLE = Path(__file__).resolve().parents[1] / "data" / "chi2_999.csv"
+
+
+@functools.lru_cache(maxsize=1)
+def _chi2_table() -> dict[int, float]:
+    """``dof -> chi2.ppf(0.999, dof)`` for dof 1-1000, as scipy's ``chdtri(dof, 0.001)`` gives it, bit for bit
+    (``tests/mc/test_divergence.py`` checks every value; ``write_chi2_table`` writes the file)."""
+    rows = CHI2_TABLE.read_text(encoding="utf-8").split()[1:]
+    return {int(d): float(v) for d, v in (r.split(",") for r in rows)}
+
+
+@functools.lru_cache(maxsize=64)
+def chi2_999(dof: int) -> float:
+    """``chi2.ppf(0.999, dof)``: from the table (importing scipy.special costs 0.03-0.15 s of a run), else scipy."""
+    v = _chi2_table().get(int(dof))
+    if v is not None:
+        return v
+    from scipy.special import chdtri  # chi-square inverse survival function (scipy.stats costs ~0.2 s to import)
+
+    return float(chdtri(dof, 0.001))
+
+
+def write_chi2_table(path: Path = CHI2_TABLE, max_dof: int = 1000) -> None:
+    """(Re)write the table of ``chi2_999`` from scipy (floats as ``repr``: exact)."""
+    from scipy.special import chdtri
+
+    rows = ["dof,chi2_ppf_0999"] + [f"{d},{float(chdtri(d, 0.001))!r}" for d in range(1, max_dof + 1)]
+    Path(path).write_text("\n".join(rows) + "\n", encoding="utf-8")
 
 
 def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, dof: dict[str, int],
@@ -29,7 +59,7 @@ def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, 
         for name, a in parts.items():
             win = a[rows, w0 : k + 1]
             if name == "nees_gauge":
-                bound = nees_factor * float(chdtri(dof[name], 0.001))  # chi2.ppf(0.999, dof)
+                bound = nees_factor * chi2_999(dof[name])
                 low = np.min(win, axis=1)
                 bad = low > bound
                 for j in np.flatnonzero(bad):

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.integrate import solve_ivp
 
 from ..config.resolve import Setup
 from ..core import dynamics, state as st
@@ -56,6 +55,8 @@ def integrate(x0: Array, t: Array, setup: Setup, rtol: float) -> Array:
     def rhs(tt, y):
         return dynamics.f_at(y, tt, orbit)
 
+    from scipy.integrate import solve_ivp  # here, not at import: ~0.2 s, and a cached truth needs none
+
     sol = solve_ivp(rhs, (t[0], t[-1]), x0, method="DOP853", t_eval=t, rtol=rtol, atol=rtol * scale * 1e-2)
     if not sol.success:  # pragma: no cover - DOP853 on a smooth problem
         raise RuntimeError(f"truth integration failed: {sol.message}")
@@ -69,7 +70,8 @@ def simulate_truth(setup: Setup) -> Truth:
     x = integrate(setup.x0, t, setup, setup.truth_rtol)
     x[:, st.QUAT] = qt.normalize(x[:, st.QUAT])
     lk = leader_kinematics(setup.orbit, t)
-    alpha = dynamics.f(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)[:, st.OMEGA]
+    # contiguous (not a view of f's output): the truth cache stores and gives back this memory layout
+    alpha = np.ascontiguousarray(dynamics.f(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)[:, st.OMEGA])
     return Truth(t=t, nu=lk.nu, nu_dot=lk.nu_dot, nu_ddot=lk.nu_ddot, x=x, alpha=alpha)
 
 

@@ -96,3 +96,16 @@ def test_bounds_defaults_are_the_scenario_defaults():
     d = DivergenceConfig()
     for f in dc.fields(Bounds):
         assert getattr(Bounds(), f.name) == getattr(d, f.name), f.name
+
+
+def test_chi2_table_is_scipys_bit_for_bit():
+    """``chi2_999`` reads a table (no scipy import at run time); every value equals ``chdtri(dof, 0.001)``."""
+    from scipy.special import chdtri
+
+    from stereopose_mc.mc import divergence
+
+    table = divergence._chi2_table()
+    assert sorted(table) == list(range(1, 1001))
+    for dof, v in table.items():
+        assert v == float(chdtri(dof, 0.001)), dof
+    assert divergence.chi2_999(5000) == float(chdtri(5000, 0.001))  # beyond the table: scipy

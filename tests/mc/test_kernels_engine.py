@@ -66,6 +66,24 @@ def test_auto_backend_picks_threads_for_compiled_and_inline_for_one_chunk():
     assert engine.local_backend(engine.RunOptions(jobs=1, backend="loky"), 4) == "inline"
 
 
+def test_auto_chunk_size_compiled_splits_over_jobs_but_keeps_small_runs_in_one_chunk():
+    c = engine.RunOptions(jobs=2, kernels="compiled")
+    sizes = {n: engine.auto_chunk_size(c, n) for n in (1, 2, 10, 40, 63, 64, 100, 1000)}
+    assert sizes == {1: 1, 2: 2, 10: 10, 40: 32, 63: 32, 64: 32, 100: 50, 1000: 250}
+    assert engine.auto_chunk_size(engine.RunOptions(jobs=2, kernels="numpy"), 2) == 50
+    assert engine.auto_chunk_size(engine.RunOptions(jobs=1, kernels="compiled"), 100) == 100
+
+
+def test_a_small_compiled_run_runs_inline(scenario, compiled_ref, tmp_path):
+    import json
+
+    out = tmp_path / "run"
+    run_ok("run", scenario, "--out", out, "--jobs", 2, "--kernels", "compiled")  # 8 trials: one chunk
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["backend"]["ran_as"] == "inline" and len(m["chunks"]) == 1
+    same_bytes(compiled_ref, out)
+
+
 def test_bad_kernels_is_one_line_exit_2(scenario, tmp_path):
     r = runner.invoke(app, ["run", str(scenario), "--out", str(tmp_path / "x"), "--kernels", "fortran", "--quiet"])
     assert r.exit_code == 2 and "--kernels" in r.output
