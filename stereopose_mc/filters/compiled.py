@@ -58,13 +58,19 @@ def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Ar
     return tuple(np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
 
 
+def _writable(a: Array) -> Array:
+    """A C-contiguous, writable float64 array (a copy where needed): a read-only view, e.g. ``broadcast_to``'s
+    with one trial, would be a second Numba signature of every kernel it enters (a second compile and load)."""
+    return np.require(a, dtype=float, requirements=["C", "W"])
+
+
 def _q_batch(Q: Array, B: int, n: int) -> Array:
     """``Q (n,)`` repeated for ``B`` trials (kept per ``Q`` and ``B``: the kernels do not write it)."""
     key = (id(Q), B, n)
     hit = _CONSTANTS.get(key)
     if hit is not None and hit[0] is Q:
         return hit[2]
-    out = np.ascontiguousarray(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
+    out = _writable(np.broadcast_to(np.asarray(Q, dtype=float), (B, n)))
     _CONSTANTS[key] = (Q, None, out)
     return out
 
@@ -91,8 +97,7 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     chart = chart_code(fs)
     if chart is None:  # the attitude chart and the UKF keep their numpy step
         return estimators.predict(x, P, t, fs, setup)
-    x = np.ascontiguousarray(x, dtype=float)
-    P = np.ascontiguousarray(P, dtype=float)
+    x, P = _writable(x), _writable(P)
     B, n = x.shape
     h = setup.dt / fs.substeps
     # the leader once for all the RK4 stage times; the first is t, where F is evaluated
@@ -162,7 +167,7 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     vis = np.flatnonzero(visible).astype(np.int64)
     C = 9 if setup.disparity else 8
     m = vis.size * C + (3 if setup.pseudo else 0)
-    R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)), dtype=float)
+    R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
     cols = (ka if chart_code(fs) == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
     out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)))
     if len(_CONSTANTS) > 256:
@@ -181,8 +186,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     solvers and their errors exactly as with ``--kernels numpy``.
     """
     chart, iterated = chart_code(fs), _iterated(fs, setup, step)
-    x = np.ascontiguousarray(x, dtype=float)
-    P = np.ascontiguousarray(P, dtype=float)
+    x, P = _writable(x), _writable(P)
     b, ne = P.shape[:2]
     _, nd, ndd = _leader(setup.orbit, float(step.t))
     nd, ndd = float(nd[0]), float(ndd[0])
@@ -190,11 +194,10 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     nvis = vis.size
     # rows: increasing trial indices into the step's batch (mc.trial's active set); all of them: no gather
     every = rows.size == step.y.shape[0] and rows.size > 0 and rows[0] == 0 and rows[-1] == rows.size - 1
-    y = np.ascontiguousarray(step.y if every else step.y[rows], dtype=float)
+    y = _writable(step.y if every else step.y[rows])
     if step.alpha_var is not None and setup.pseudo:  # per-trial pseudo-row variances
-        R = np.ascontiguousarray(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, step.alpha_var[rows]),
-                                                 (b, m)), dtype=float)  # fmt: skip
-    alpha = np.ascontiguousarray(step.alpha if every else step.alpha[rows], dtype=float) if setup.pseudo else zeros3
+        R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, step.alpha_var[rows]), (b, m)))
+    alpha = _writable(step.alpha if every else step.alpha[rows]) if setup.pseudo else zeros3
     keep = None if step.feature_mask is None else step.feature_mask[rows]
     rejected = np.zeros(b, int)
     if fs.gate_probability is not None and nvis:

@@ -312,7 +312,9 @@ def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> dict[st
 
 def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
-    x_hat = np.ascontiguousarray(x_hat, dtype=float)
-    out, pd = nees_batch(x_hat, np.ascontiguousarray(P, dtype=float),
-                        np.ascontiguousarray(np.broadcast_to(x_true, x_hat.shape), dtype=float))  # fmt: skip
+    def writable(a):  # one Numba signature: a read-only view (broadcast_to) would be a second compile and load
+        return np.require(a, dtype=float, requirements=["C", "W"])
+
+    x_hat = writable(x_hat)
+    out, pd = nees_batch(x_hat, writable(P), writable(np.broadcast_to(x_true, x_hat.shape)))
     return {k: out[:, j] for j, k in enumerate(KEYS)}, pd
