@@ -335,7 +335,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Laug = np.empty((n + (3 if chart == 1 else 0), n))
     Hw = np.empty((m, n))
     rw = np.empty(m)
-    v = np.empty(m)
     A = np.empty((n, n))
     Afin = np.empty((n, n))
     LA = np.empty((n, n))
@@ -367,6 +366,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                     D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
         _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
+        _mul_t(Hw, rw, g)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -376,7 +376,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         c0 = 0.0
         for r in range(m):
             c0 += rw[r] * rw[r]
-        _mul_t(Hw, rw, g)
         for i in range(n):
             d[i] = g[i]
         _chol_solve(LA, d)
@@ -391,17 +390,17 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         failed = False
         fresh = True
         for it in range(max_iter):
-            # z_GN = A^-1 Hw^T (rw + Hw z); from the prior (z = 0) that is d = A^-1 g of the NIS above
+            # z_GN = A^-1 Hw^T (rw + Hw z) = A^-1 (g + (A - I) z); from the prior (z = 0) that is d = A^-1 g of
+            # the NIS above
             if it == 0:
                 for i in range(n):
                     zn[i] = d[i]
             else:
-                for r in range(m):
-                    s = rw[r]
+                for i in range(n):
+                    s = g[i] - z[i]
                     for j in range(n):
-                        s += Hw[r, j] * z[j]
-                    v[r] = s
-                _mul_t(Hw, v, zn)
+                        s += A[i, j] * z[j]
+                    zn[i] = s
                 if not _cholesky(A, LA):
                     failed = True
                     break
@@ -432,15 +431,15 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             its[b] += 1
             # size of the increment dz = zn - z
             size = 0.0
-            if stopping == 0:
+            if stopping == 0:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
                 for i in range(n):
-                    size += (zn[i] - z[i]) ** 2
-                for r in range(m):
+                    dx[i] = zn[i] - z[i]
+                for i in range(n):
                     s = 0.0
                     for j in range(n):
-                        s += Hw[r, j] * (zn[j] - z[j])
-                    size += s * s
-                size = math.sqrt(size)
+                        s += A[i, j] * dx[j]
+                    size += dx[i] * s
+                size = math.sqrt(max(size, 0.0))
             elif stopping == 1:
                 for i in range(n):
                     size += (zn[i] - z[i]) ** 2
@@ -475,6 +474,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                         D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
             _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
+            _mul_t(Hw, rw, g)
         if failed or not (fresh or _cholesky(Afin, LA)):
             ok[b] = False
             continue
