@@ -61,7 +61,9 @@ def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Ar
 def _writable(a: Array) -> Array:
     """A C-contiguous, writable float64 array (a copy where needed): a read-only view, e.g. ``broadcast_to``'s
     with one trial, would be a second Numba signature of every kernel it enters (a second compile and load)."""
-    return np.require(a, dtype=float, requirements=["C", "W"])
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=float, order="C")
 
 
 def _q_batch(Q: Array, B: int, n: int) -> Array:

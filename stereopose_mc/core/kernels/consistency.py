@@ -313,7 +313,10 @@ def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> dict[st
 def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
     def writable(a):  # one Numba signature: a read-only view (broadcast_to) would be a second compile and load
-        return np.require(a, dtype=float, requirements=["C", "W"])
+        a = np.asarray(a)
+        if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+            return a
+        return np.array(a, dtype=float, order="C")
 
     x_hat = writable(x_hat)
     out, pd = nees_batch(x_hat, writable(P), writable(np.broadcast_to(x_true, x_hat.shape)))
