@@ -79,11 +79,21 @@ def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             if temp == "cold" and kernels == "compiled" and cfg.cold_cache:
                 log(f"e2e: cleared {clear_numba_cache()} Numba cache files")
             out = tmp / f"e2e-{kernels}-{temp}"
-            log(f"e2e: {kernels}, {temp}, {T} trials, --jobs {J}")
-            wall, _ = _spmc(["run", str(scn), "--trials", str(T), "--jobs", str(J), "--out", str(out), "--overwrite",
-                             "--quiet", "--no-report", "--kernels", kernels], env)  # fmt: skip
+            # the warm compiled campaign (the target) is a median of `repeats` runs: this shared machine's
+            # speed drifts by 10-15 % between minutes
+            reps = max(1, cfg.repeats) if (temp == "warm" and kernels == "compiled") else 1
+            walls, engines = [], []
+            for _ in range(reps):
+                log(f"e2e: {kernels}, {temp}, {T} trials, --jobs {J}")
+                w, _ = _spmc(["run", str(scn), "--trials", str(T), "--jobs", str(J), "--out", str(out), "--overwrite",
+                              "--quiet", "--no-report", "--kernels", kernels], env)  # fmt: skip
+                walls.append(w)
+                engines.append(_engine_wall(out))
+            wall = float(np.median(walls))
             ndiv, ntr, _ = _run_counts(out, _steps_of(d))
-            note = f"engine {_engine_wall(out):.2f} s; {ndiv}/{ntr} (trial, filter) runs diverged"
+            note = f"engine {float(np.median(engines)):.2f} s; {ndiv}/{ntr} (trial, filter) runs diverged"
+            if reps > 1:
+                note = f"median of {reps} ({', '.join(f'{w:.2f}' for w in walls)} s); " + note
             target = status = ""
             if temp == "warm":
                 warm[kernels] = wall
