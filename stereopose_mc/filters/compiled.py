@@ -156,11 +156,12 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
 
 
 def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -> tuple:
-    """``(vis, C, m, R (b, m) or None, cols, mask of ones (b, m))`` for this filter, visibility and batch size.
+    """``(vis, C, m, R (b, m), cols, mask of ones (b, m), zeros (b, 3))`` for this filter, visibility and batch size.
 
     The same at every step where the same features are visible: kept (a few entries per
-    run) so that a step does not rebuild them; ``R`` is None when the pseudo rows' variance
-    comes per trial (``alpha_var``). Shared between steps: the kernels never write their inputs.
+    run) so that a step does not rebuild them. ``R`` carries the filter's own pseudo-row
+    variance (``compiled_update`` builds it per trial when the step brings ``alpha_var``).
+    Shared between steps: the kernels never write their inputs.
     """
     key = (id(fs), id(setup), visible.tobytes(), b, ne)
     hit = _CONSTANTS.get(key)
@@ -172,11 +173,10 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
     cols = (ka if chart_code(fs) == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
     out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)))
-    if len(_CONSTANTS) > 256:
+    if len(_CONSTANTS) > 64:  # a perturbed truth or a pseudo-row warm-up makes a new setup per step: bounded
         _CONSTANTS.clear()
     _CONSTANTS[key] = (fs, setup, out)  # the objects themselves: an id is never reused while they are held
     return out
-
 
 
 def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
