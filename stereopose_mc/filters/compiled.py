@@ -110,7 +110,7 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     else:  # the same kernels in one call
         x_pred, T = km.predict_state_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, setup.dt, fs.taylor_order)
     if chart == 1:
-            return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
+        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
 

@@ -334,12 +334,7 @@ def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude", ke
     (MEKF, UKF), or the aligned chart's (``error_state: aligned``, mapped to the attitude
     chart, in which every NEES is reported).
     """
-    if kernels == "compiled" and (P.shape[-1] == x.shape[-1] or error_state == "aligned"):
-        from ..core.kernels import consistency  # the same numbers to round-off (tests/core/test_kernels_consistency.py)
-
-        return consistency.nees_report(x, P, x_true)
-    with np.errstate(all="ignore"):
-        return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true)
+    return nees_and_pd(x, P, x_true, error_state, kernels)[0]
 
 
 def aligned_covariance(x: Array, P: Array, error_state: str = "attitude") -> Array:
@@ -363,15 +358,17 @@ def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Ar
 
 def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
                 kernels: str = "numpy") -> tuple[dict[str, Array], Array | None]:  # fmt: skip
-    """``nees_of`` and, from the compiled kernel (aligned error state), whether ``P`` is positive definite.
+    """``nees_of`` and, from the compiled kernel (aligned error state or full state), whether ``P`` is positive
+    definite.
 
     The second item is None where the numpy path computed the NEES (``_check`` then factorizes ``P``).
     """
     if kernels == "compiled" and (P.shape[-1] == x.shape[-1] or error_state == "aligned"):
-        from ..core.kernels import consistency
+        from ..core.kernels import consistency  # the same numbers to round-off (tests/core/test_kernels_consistency.py)
 
         return consistency.nees_and_pd(x, P, x_true)
-    return nees_of(x, P, x_true, error_state, kernels), None
+    with np.errstate(all="ignore"):
+        return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true), None
 
 
 def _store_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, v: dict[str, Array]) -> None:

@@ -30,23 +30,12 @@ from numba import njit
 
 from .aligned import _error_map
 from .model import _dcm, _mirror_lower
-from .update import _cholesky, _cholesky_small
+from .update import _cholesky, _cholesky_small, _forward
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 KEYS = ("nees", "nees_gauge", "nees_rho", "nees_rho_dot", "nees_omega", "nees_attitude", "nees_feature_points",
         "nees_k")  # fmt: skip
-
-
-@njit(**_JIT)
-def _forward(L, b, out):
-    """``out = L^-1 b`` (``L`` lower triangular, forward substitution)."""
-    n = L.shape[0]
-    for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * out[k]
-        out[i] = t / L[i, i]
 
 
 @njit(**_JIT)

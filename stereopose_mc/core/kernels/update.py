@@ -84,14 +84,21 @@ def _cholesky_small(A, L):
 
 
 @njit(**_JIT)
+def _forward(L, b, out):
+    """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``)."""
+    n = L.shape[0]
+    for i in range(n):
+        t = b[i]
+        for k in range(i):
+            t -= L[i, k] * out[k]
+        out[i] = t / L[i, i]
+
+
+@njit(**_JIT)
 def _chol_solve(L, b):
     """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
     n = L.shape[0]
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * b[k]
-        b[i] = s / L[i, i]
+    _forward(L, b, b)
     for i in range(n - 1, -1, -1):
         s = b[i]
         for k in range(i + 1, n):
