@@ -113,6 +113,22 @@ def field_units(path: Path) -> dict[str, str | None]:
     return {f.name: (f.metadata or {}).get(b"unit", b"").decode() or None for f in pq.read_schema(path)}
 
 
+def parquet_options(schema: pa.Schema) -> dict[str, Any]:
+    """The writer settings of every Parquet file of a run: zstd, no statistics, dictionary pages for the
+    columns that are not floating point only.
+
+    Dictionary encoding suits the few distinct values of ``filter``, ``trial`` or ``step``; on the
+    float columns (errors, sigmas, NEES: nearly all values distinct) the writer fills a dictionary
+    page, gives up and falls back to plain pages, which took 2.6x the time of the whole file for a
+    larger file (case B's 1,000-trial time series: 0.11 s and 17.1 MB with dictionaries everywhere,
+    0.04 s and 13.6 MB with this).
+    """
+    import pyarrow.types as pat
+
+    keep = [f.name for f in schema if not pat.is_floating(f.type)]
+    return {"compression": "zstd", "write_statistics": False, "use_dictionary": keep}
+
+
 def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None = None,
                   units: dict[str, str] | None = None) -> None:  # fmt: skip
     """Write ``df`` as Parquet atomically, with ``metadata`` in the file's key-value metadata
@@ -134,7 +150,7 @@ def write_parquet(path: Path, df: pd.DataFrame, metadata: dict[str, str] | None 
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        pq.write_table(table, tmp, compression="zstd", write_statistics=False)
+        pq.write_table(table, tmp, **parquet_options(table.schema))
         _publish(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -167,7 +183,7 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
             t = t.replace_schema_metadata({k.encode(): str(v).encode() for k, v in (metadata or {}).items()})
             t = with_units(t, units)
             if writer is None:
-                writer = pq.ParquetWriter(tmp, t.schema, compression="zstd", write_statistics=False)
+                writer = pq.ParquetWriter(tmp, t.schema, **parquet_options(t.schema))
             buffered.append(t)
             n_buf += t.num_rows
             n_all += t.num_rows

@@ -155,3 +155,102 @@ def test_gram_lower_blocked(n):
     ref = M.T @ M
     il = np.tril_indices(n)
     np.testing.assert_allclose(G[il], ref[il], rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("n", [1, 3, 15, 29, 70])
+def test_cholesky_potrf_in_place_and_on_blocks(n):
+    """``update._cholesky`` (LAPACK potrf called in place) equals numpy's factor, also on a block ``C[:n, :n]`` of a
+    larger array (leading dimension = row stride) and on a non-unit-stride view; False, not a crash, on a matrix that
+    is not positive definite or has a non-finite pivot."""
+    from numba import njit
+
+    from stereopose_mc.core.kernels import update as ku
+
+    @njit
+    def on_block(C, W, m):
+        return ku._cholesky(C[:m, :m], W[:m, :m])
+
+    rng = np.random.default_rng(n)
+    M = rng.standard_normal((n, n))
+    A = M @ M.T + n * np.eye(n)
+    ref = np.linalg.cholesky(A)
+    L = np.full((n, n), np.nan)
+    assert ku._cholesky(A, L)
+    np.testing.assert_allclose(L, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    assert np.all(np.triu(L, 1) == 0.0)
+    C = np.full((n + 4, n + 4), 7.0)
+    C[:n, :n] = A
+    W = np.full((n + 4, n + 4), 5.0)
+    assert on_block(C, W, n)
+    np.testing.assert_allclose(W[:n, :n], ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    assert np.all(W[n:] == 5.0) and np.all(W[:, n:] == 5.0)  # nothing written outside the block
+    Ls = np.full((n, 2 * n), np.nan)
+    assert ku._cholesky(A, Ls[:, ::2])  # strided columns: through a contiguous copy
+    np.testing.assert_allclose(Ls[:, ::2], ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    bad = A.copy()
+    bad[n - 1, n - 1] = -1.0
+    assert not ku._cholesky(bad, L)
+    bad[n - 1, n - 1] = np.inf
+    assert not ku._cholesky(bad, L)
+    bad[n - 1, n - 1] = np.nan
+    assert not ku._cholesky(bad, L)
+
+
+@pytest.mark.parametrize("n", [0, 1, 3, 4, 7, 16, 29, 134])
+def test_dot_and_chol_solve(n):
+    """The four-sum ``_dot``/``_dot_row`` equal ``np.dot``; ``_forward`` and ``_chol_solve`` (rows of ``L`` for the
+    back substitution) equal numpy's triangular and full solves."""
+    from stereopose_mc.core.kernels import model as km2
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(100 + n)
+    a, b = rng.standard_normal((2, n))
+    ref = float(np.dot(a, b)) if n else 0.0
+    assert km2._dot(a, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
+    M = np.vstack([b, a]) if n else np.zeros((2, 0))
+    assert km2._dot_row(M, 1, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
+    if n == 0:
+        return
+    assert km2._dot(a, b, 1, n - 1) == pytest.approx(float(np.dot(a[1 : n - 1], b[1 : n - 1])), rel=1e-13, abs=1e-13)
+    X = rng.standard_normal((n, n))
+    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
+    w = np.empty(n)
+    ku._forward(L, a, w)
+    np.testing.assert_allclose(L @ w, a, rtol=0, atol=1e-12 * max(1.0, np.abs(a).max()))
+    x = a.copy()
+    ku._chol_solve(L, x)
+    np.testing.assert_allclose(x, np.linalg.solve(L @ L.T, a), rtol=1e-10, atol=1e-12)
+
+
+def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
+    """Numba's on-disk cache: the kernels compiled here (and saved) load and run in a fresh process. (A recursive
+    call between two specializations compiled fine but its cached copy did not link: a segfault on reload.)"""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "reload.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from stereopose_mc.core.kernels import consistency as kc, update as ku\n"
+        "rng = np.random.default_rng(0)\n"
+        "n = 29; M = rng.standard_normal((n, n)); A = M @ M.T + n * np.eye(n); L = np.empty((n, n))\n"
+        "assert ku._cholesky(A, L)\n"
+        "x = np.zeros((2, 30)); x[:, 9] = 1.0; x[:, 13:28] = rng.standard_normal((2, 15)); xt = x.copy()\n"
+        "xt[:, 0] += 0.1\n"
+        "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt)\n"
+        "assert pd.all() and np.isfinite(out).all(), out\n"
+        "print('ok', round(float(out[0, 0]), 6))\n"
+    )
+    x = np.zeros((2, 30))
+    x[:, 9] = 1.0
+    x[:, 13:28] = np.random.default_rng(0).standard_normal((2, 15))
+    from stereopose_mc.core.kernels import consistency as kc
+
+    kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), x.copy())  # compiled (and cached) here
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    for _ in range(2):  # the first may still compile (another specialization); the second loads from the cache
+        r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+        assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+        assert r.stdout.startswith("ok ")
+    assert float(r.stdout.split()[1]) == pytest.approx(0.1**2 / 0.01, rel=1e-9)

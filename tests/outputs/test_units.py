@@ -74,3 +74,35 @@ def test_compare_reads_old_float_percentile_tables(run, tmp_path):
     assert res.ok and len(res.cells) > 0
     r = spmc("compare", run, tmp_path / "old.parquet")
     assert r.exit_code == 0, r.output
+
+
+@pytest.mark.parametrize("name", TABLES)
+def test_float_columns_are_written_without_dictionary_pages(run, name):
+    """``rundir.parquet_options``: dictionary pages only for the columns that are not floating point (a dictionary
+    of nearly all-distinct floats costs time and size), zstd everywhere; the values read back are the table's."""
+    import pyarrow.types as pat
+
+    f = pq.ParquetFile(run / name)
+    rg = f.metadata.row_group(0)
+    seen_float = seen_other = 0
+    for i, field in enumerate(f.schema_arrow):
+        col = rg.column(i)
+        assert col.compression == "ZSTD", (name, field.name)
+        has_dict = col.dictionary_page_offset is not None
+        if pat.is_floating(field.type):
+            assert not has_dict, (name, field.name, col.encodings)
+            seen_float += 1
+        elif pat.is_string(field.type) or pat.is_large_string(field.type):
+            assert has_dict, (name, field.name, col.encodings)
+            seen_other += 1
+    assert seen_float > 0
+
+
+def test_parquet_options_round_trip(tmp_path):
+    df = pd.DataFrame({"filter": ["iekf", "ekf"] * 50, "trial": range(100), "e": [0.1 * i for i in range(100)]})
+    rundir.write_parquet(tmp_path / "t.parquet", df, {"k": "v"})
+    back = pd.read_parquet(tmp_path / "t.parquet")
+    pd.testing.assert_frame_equal(back, df)
+    enc = {f.name: pq.ParquetFile(tmp_path / "t.parquet").metadata.row_group(0).column(i).dictionary_page_offset
+           for i, f in enumerate(pq.ParquetFile(tmp_path / "t.parquet").schema_arrow)}  # fmt: skip
+    assert enc["e"] is None and enc["filter"] is not None and enc["trial"] is not None

@@ -303,54 +303,23 @@ def error_map_batch(x_ref):
 
 
 @njit(**_JIT)
-def _sparse_row_times(out, a, M):
-    """``out += a M`` (``a`` a sparse row), one axpy per non-zero of ``a``."""
-    for t in range(a.shape[0]):
-        c = a[t]
-        if c != 0.0:
-            for j in range(out.shape[0]):
-                out[j] += c * M[t, j]
-
-
-@njit(**_JIT)
-def _add_mapped_noise(T, Q, Pb, idx, val):
-    """``Pb += T diag(Q) T^T`` on the lower triangle, one column of ``T`` (its few non-zeros) at a time."""
-    ne, n = T.shape
-    for j in range(n):
-        q = Q[j]
-        if q == 0.0:
-            continue
-        cnt = 0
-        for r in range(ne):
-            if T[r, j] != 0.0:
-                idx[cnt] = r
-                val[cnt] = T[r, j]
-                cnt += 1
-        for a in range(cnt):
-            va = q * val[a]
-            for c in range(a + 1):
-                Pb[idx[a], idx[c]] += va * val[c]
-
-
-@njit(**_JIT)
 def predict_covariance_batch(x, x_pred, Tb, P, Q):
     """``P- = Phi_e P Phi_e^T + T(x-) diag(Q) T(x-)^T`` with ``Phi_e = T(x-) Phi S(x+)``, symmetric (``mekf.predict``).
 
     ``x (B, n)`` the posteriors at which ``F`` was evaluated, ``x_pred (B, n)`` the predicted
     states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
     of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
-    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)`` by rows on
-    the non-zeros of ``T``; ``P- = Phi_e (Phi_e P)^T`` by BLAS (two ``np.dot``), then
-    ``T diag(Q) T^T`` on its lower triangle (column by column of ``T``, on its non-zeros), the
-    lower triangle mirrored (exactly symmetric).
+    ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); then by BLAS (``np.dot``, at
+    ``n ~ 30`` faster than walking the non-zeros of ``T``): ``Phi_e = T (Phi S)``, ``P- = Phi_e
+    (Phi_e P)^T + (T diag(Q)) T^T``, its lower triangle mirrored (exactly symmetric).
     """
     B, n = x.shape
     ne = n - 1
     out = np.empty((B, ne, ne))
     S = np.empty((n, ne))
     T = np.empty((ne, n))
-    idx = np.empty(ne, np.int64)
-    val = np.empty(ne)
+    TQ = np.empty((ne, n))
+    W = np.empty((ne, ne))
     PS = np.empty((n, ne))
     Sc = np.empty((15, ne))
     Y = np.empty((ne, ne))
@@ -368,14 +337,17 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
             Sc[13, j] = S[n - 2, j]
             Sc[14, j] = S[n - 1, j]
         np.dot(Tb[b], Sc, PS[:13])  # (Phi S)[0:13] = Tb S[c] (BLAS gemm)
-        for r in range(ne):  # Phi_e = T (Phi S)
-            for j in range(ne):
-                Y[r, j] = 0.0
-            _sparse_row_times(Y[r], T[r], PS)
-        np.dot(Y, P[b], M)  # M = Phi_e P (BLAS gemm)
+        np.dot(T, PS, Y)  # Phi_e = T (Phi S)
+        np.dot(Y, P[b], M)  # M = Phi_e P
         Pb = out[b]
         np.dot(Y, M.T, Pb)  # Phi_e M^T
-        _add_mapped_noise(T, Q[b], Pb, idx, val)  # + T Q T^T on the lower triangle
+        for r in range(ne):
+            for j in range(n):
+                TQ[r, j] = T[r, j] * Q[b, j]
+        np.dot(TQ, T.T, W)  # T diag(Q) T^T
+        for r in range(ne):
+            for j in range(r + 1):
+                Pb[r, j] += W[r, j]
         _mirror_lower(Pb)
     return out
 

@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from .aligned import _error_map
-from .model import _dcm, _mirror_lower
+from .model import _dcm, _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -142,10 +142,7 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
     if not _cholesky(P, L):
         return False
     _forward(L, e, w)
-    full = 0.0
-    for i in range(ne):
-        full += w[i] * w[i]
-    out[0] = full
+    out[0] = _dot(w, w, 0, ne)
     # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
     # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
     # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
@@ -157,27 +154,17 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
             u[12 + 3 * i + j] = 1.0
         _forward(L, u, U[j])
         for k in range(j):
-            s = 0.0
-            for i in range(ne):
-                s += U[k, i] * U[j, i]
+            s = _dot_row(U, k, U[j], 0, ne)
             for i in range(ne):
                 U[j, i] -= s * U[k, i]
-        s = 0.0
-        for i in range(ne):
-            s += U[j, i] * U[j, i]
-        s = math.sqrt(s)
+        s = math.sqrt(_dot_row(U, j, U[j], 0, ne))
         for i in range(ne):
             U[j, i] /= s
     for j in range(3):
-        s = 0.0
-        for i in range(ne):
-            s += U[j, i] * w[i]
+        s = _dot_row(U, j, w, 0, ne)
         for i in range(ne):
             w[i] -= s * U[j, i]
-    g = 0.0
-    for i in range(ne):
-        g += w[i] * w[i]
-    out[1] = g
+    out[1] = _dot(w, w, 0, ne)
     # --- attitude-chart error, anchored at the truth: x_hat = x_true [+] eps
     for r in range(9):
         eps[r] = xh[r] - xt[r]

@@ -30,10 +30,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 from .aligned import _chart, _measure_aligned, augment
-from .model import NNZ, _combine, _measure_one, _mirror_lower
+from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -42,17 +42,42 @@ CONTROL = {"none": 0, "line_search": 1}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
 
 
+# LAPACK's dpotrf as Numba's own ``np.linalg.cholesky`` calls it (its C helper resolves scipy's
+# ``cython_lapack`` at run time, so a cached kernel stays valid in a new process); called directly
+# it factorizes in place: no copy of the input, no allocated output, no exception to catch.
+_xxpotrf = types.ExternalFunction("numba_xxpotrf", types.intc(types.char, types.char, types.intp,
+                                                               types.CPointer(types.float64), types.intp))  # fmt: skip
+_KIND_D, _UPLO_U = 100, 85  # ord("d") (float64), ord("U")
+
+
 @njit(**_JIT)
 def _cholesky(A, L):
     """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
 
-    LAPACK's ``potrf`` through ``np.linalg.cholesky`` (Numba's binding of the BLAS/LAPACK that
-    scipy ships), which raises on a matrix that is not positive definite or not finite.
+    LAPACK's ``potrf`` on ``L`` in place (``L`` may be a block ``M[:m, :m]`` of a larger C-order
+    array): a C-order lower triangle is the upper triangle of the same memory read in Fortran
+    order, hence ``uplo = "U"``. ``potrf`` fails (``info > 0``) on a
+    matrix that is not positive definite; a NaN pivot fails too (``not d > 0``).
     """
-    try:
-        L[:, :] = np.linalg.cholesky(A)
-    except Exception:  # Numba's LinAlgError (not positive definite, or not finite)
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            L[i, j] = A[i, j]
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
+    if n == 0:
+        return True
+    if L.strides[1] == 8:  # unit-stride rows: in place, the row stride of a block ``L[:m, :m]`` being the leading dimension
+        info = _xxpotrf(_KIND_D, _UPLO_U, n, L.ctypes, L.strides[0] // 8)
+    else:  # (never in these kernels) a contiguous copy; no recursive call: a cached recursion does not link
+        Lc = np.ascontiguousarray(L)
+        info = _xxpotrf(_KIND_D, _UPLO_U, n, Lc.ctypes, n)
+        L[:, :] = Lc
+    if info != 0:
         return False
+    for i in range(n):
+        if not math.isfinite(L[i, i]):
+            return False
     return True
 
 
@@ -88,9 +113,12 @@ def _forward(L, b, out):
     """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``)."""
     n = L.shape[0]
     for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * out[k]
+        if i < 16:  # short rows (the NEES's small blocks): one running sum costs less than four
+            t = b[i]
+            for k in range(i):
+                t -= L[i, k] * out[k]
+        else:
+            t = b[i] - _dot_row(L, i, out, 0, i)
         out[i] = t / L[i, i]
 
 
@@ -99,11 +127,13 @@ def _chol_solve(L, b):
     """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
     n = L.shape[0]
     _forward(L, b, b)
+    # L^T x = b from the last row up, by rows of L (contiguous): x_i = b_i / L_ii, then b_k -= L_ik x_i, k < i
     for i in range(n - 1, -1, -1):
-        s = b[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * b[k]
-        b[i] = s / L[i, i]
+        xi = b[i] / L[i, i]
+        b[i] = xi
+        Li = L[i]
+        for k in range(i):
+            b[k] -= Li[k] * xi
 
 
 @njit(**_JIT)
@@ -259,14 +289,8 @@ def _keep_linearization(A, Afin):
 
 @njit(**_JIT)
 def _mul_t(M, v, out):
-    """``out = M^T v`` (``M (m, n)``), row by row."""
-    m, n = M.shape
-    for i in range(n):
-        out[i] = 0.0
-    for r in range(m):
-        a = v[r]
-        for i in range(n):
-            out[i] += M[r, i] * a
+    """``out = M^T v`` (``M (m, n)``)."""
+    np.dot(M.T, v, out)  # BLAS gemv
 
 
 @njit(**_JIT)
@@ -309,10 +333,7 @@ def _posterior_covariance(L, LA, out, X):
 def _lower_mul(L, z, out):
     """``out = L z`` (``L`` lower triangular)."""
     for i in range(L.shape[0]):
-        s = 0.0
-        for j in range(i + 1):
-            s += L[i, j] * z[j]
-        out[i] = s
+        out[i] = _dot_row(L, i, z, 0, i + 1)
 
 
 @njit(**_JIT)
@@ -386,10 +407,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         for i in range(n):
             d[i] = g[i]
         _chol_solve(LA, d)
-        s = 0.0
-        for i in range(n):
-            s += g[i] * d[i]
-        nis[b] = c0 - s
+        nis[b] = c0 - _dot(g, d, 0, n)
         cost = c0
         for i in range(n):
             z[i] = 0.0
@@ -404,10 +422,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                     zn[i] = d[i]
             else:
                 for i in range(n):
-                    s = g[i] - z[i]
-                    for j in range(n):
-                        s += A[i, j] * z[j]
-                    zn[i] = s
+                    zn[i] = (g[i] - z[i]) + _dot_row(A, i, z, 0, n)
                 if not _cholesky(A, LA):
                     failed = True
                     break
@@ -442,10 +457,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 for i in range(n):
                     dx[i] = zn[i] - z[i]
                 for i in range(n):
-                    s = 0.0
-                    for j in range(n):
-                        s += A[i, j] * dx[j]
-                    size += dx[i] * s
+                    size += dx[i] * _dot_row(A, i, dx, 0, n)
                 size = math.sqrt(max(size, 0.0))
             elif stopping == 1:
                 for i in range(n):
