@@ -254,3 +254,37 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
         assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
         assert r.stdout.startswith("ok ")
     assert float(r.stdout.split()[1]) == pytest.approx(0.1**2 / 0.01, rel=1e-9)
+
+
+def test_kernel_cache_is_stamped_by_the_whole_package(tmp_path):
+    """Every kernel's Numba cache is keyed by the sources of all ``core/kernels`` modules (``_cache``), so editing a
+    callee's module (``update._cholesky``) invalidates its callers' cached code in other modules; functions outside
+    the package keep Numba's own locators."""
+    from numba import njit
+
+    from stereopose_mc.core.kernels import _cache, consistency as kc, update as ku
+
+    assert _cache.install()  # installed by the package already: idempotent
+    assert sum(c in _cache.LOCATORS for c in _cache._IMPL._locator_classes) == len(_cache.LOCATORS)
+    for kernel in (ku.iekf_update_batch, kc.nees_batch, km.predict_state_batch):
+        loc = kernel._cache._impl.locator
+        assert isinstance(loc, _cache.LOCATORS), type(loc)
+        assert loc.get_source_stamp() == _cache.package_stamp()
+
+    @njit(cache=True)
+    def outside(a):
+        return a + 1
+
+    assert not isinstance(outside._cache._impl.locator, _cache.LOCATORS)
+    # the stamp covers every module's content, and only that
+    for name in ("a.py", "b.py"):
+        (tmp_path / name).write_text(f"x = '{name}'\n")
+    s0 = _cache.package_stamp(tmp_path)
+    assert _cache.package_stamp(tmp_path) == s0
+    (tmp_path / "b.py").write_text("x = 'changed'\n")
+    s1 = _cache.package_stamp(tmp_path)
+    assert s1 != s0
+    (tmp_path / "c.py").write_text("")
+    assert _cache.package_stamp(tmp_path) not in (s0, s1)
+    (tmp_path / "notes.txt").write_text("not a module")
+    assert len(_cache.source_files(tmp_path)) == 3

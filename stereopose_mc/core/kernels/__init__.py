@@ -8,3 +8,7 @@ loaded from Numba's on-disk cache, ``cache=True``). ``core/kernels/model.py`` ho
 covariance predict, the row-sparse ``H_e``); ``core/kernels/update.py`` the EKF and IEKF
 updates in either chart.
 """
+
+from . import _cache
+
+_cache.install()  # before any kernel module is imported: their @njit(cache=True) pick a locator when decorated

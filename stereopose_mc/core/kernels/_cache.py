@@ -1,0 +1,84 @@
+"""Numba's on-disk cache for the kernels, keyed by the source of the whole package.
+
+Numba stamps a cached function with the hash of its own source file only. A kernel in one
+module compiles in the functions it calls from another (``consistency.nees_batch`` calls
+``update._cholesky``), so editing ``update.py`` left ``consistency.py``'s cached kernels
+in place, still holding the old ``_cholesky``: stale results, or a crash when the old
+code no longer links. The locators below give every function of this package the hash
+of all its modules' sources as the stamp, so any edit to any kernel module recompiles
+them all (a release's cache is rebuilt on upgrade as before). Functions elsewhere keep
+Numba's own locators. Installed by ``core/kernels/__init__.py`` before the first
+``@njit(cache=True)`` of the package runs (Numba picks a function's locator when it is
+decorated).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+from pathlib import Path
+
+from numba.core import caching
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def source_files(directory: Path = PACKAGE_DIR) -> list[Path]:
+    """The package's Python modules, sorted (the stamp does not depend on listing order)."""
+    return sorted(p for p in directory.glob("*.py") if p.is_file())
+
+
+@functools.lru_cache(maxsize=8)
+def _stamp_of(files: tuple[tuple[str, float, int], ...]) -> bytes:
+    h = hashlib.sha256()
+    for path, _mtime, _size in files:  # (mtime, size) only key the memo: the content is hashed
+        h.update(Path(path).name.encode() + b"\0")
+        h.update(Path(path).read_bytes())
+        h.update(b"\0")
+    return h.digest()
+
+
+def package_stamp(directory: Path = PACKAGE_DIR) -> bytes:
+    """SHA-256 of the names and contents of the package's modules."""
+    files = []
+    for p in source_files(directory):
+        st = p.stat()
+        files.append((str(p), st.st_mtime, st.st_size))
+    return _stamp_of(tuple(files))
+
+
+def _package_locator(base: type) -> type:
+    """``base`` (one of Numba's locators) for this package's functions, stamped with ``package_stamp``."""
+
+    class PackageLocator(base):
+        def get_source_stamp(self):
+            return package_stamp()
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if Path(os.path.abspath(py_file)).parent != PACKAGE_DIR:
+                return None  # not a kernel: Numba's own locators
+            return super().from_function(py_func, py_file)
+
+    PackageLocator.__name__ = PackageLocator.__qualname__ = f"Package{base.__name__}"
+    return PackageLocator
+
+
+_NAMES = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator")
+_IMPL = getattr(caching, "CacheImpl", None) or getattr(caching, "_CacheImpl", None)
+BASES = tuple(getattr(caching, n) for n in _NAMES if hasattr(caching, n))
+LOCATORS = tuple(_package_locator(b) for b in BASES)
+
+
+def install() -> bool:
+    """Put the package locators first in Numba's list (once), in Numba's own order of preference.
+
+    False (nothing changed: Numba's per-file stamps) if this Numba lacks the classes used here.
+    """
+    classes = getattr(_IMPL, "_locator_classes", None)
+    if not isinstance(classes, list) or len(BASES) != len(_NAMES):
+        return False
+    if not any(c in classes for c in LOCATORS):
+        classes[:0] = list(LOCATORS)
+    return True
