@@ -267,10 +267,10 @@ def _gram_lower(M, G):
 
 @njit(**_JIT)
 def _cost_at(chart, z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, e, xt, hx,
-             Hdummy, D, dD):  # fmt: skip
-    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2`` (``h`` only)."""
+             H, D, dD, compute_jac):  # fmt: skip
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2``; ``h`` in ``hx``, and ``H`` too when ``compute_jac``."""
     _lower_mul(L, z, e)
-    _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, False, hx, Hdummy, xt, D, dD)
+    _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, H, xt, D, dD)
     c = 0.0
     for i in range(z.shape[0]):
         c += z[i] * z[i]
@@ -430,18 +430,30 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             fresh = True  # LA is the factor of this iterate's A
             accepted = True
             c_new = cost
+            have_jac = False  # hx, Hval already hold h and H at the accepted iterate
             if control == 1:  # backtracking line search on the MAP cost
                 for i in range(n):
                     d[i] = zn[i] - z[i]
+                # The full step's Mahalanobis size, known before its cost: if the full step is taken it will not
+                # stop the iterations, so its cost evaluation computes H too, which the next linearization needs
+                # (h and H at the same point: the same numbers as measuring again there).
+                jac_full = False
+                if stopping == 0 and it < max_iter - 1:
+                    sf = 0.0
+                    for i in range(n):
+                        sf += d[i] * _dot_row(A, i, d, 0, n)
+                    jac_full = not (math.sqrt(max(sf, 0.0)) < tol)
                 a = 1.0
                 accepted = False
                 for _h in range(max_halvings + 1):
                     for i in range(n):
                         zt[i] = z[i] + a * d[i]
+                    jac = jac_full and _h == 0
                     ct = _cost_at(chart, zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd,
-                                  ndd, e, xt, hx, Hdummy, D, dD)  # fmt: skip
+                                  ndd, e, xt, hx, Hval if jac else Hdummy, D, dD, jac)  # fmt: skip
                     if math.isfinite(ct) and ct <= cost:
                         accepted = True
+                        have_jac = jac
                         c_new = ct
                         for i in range(n):
                             zn[i] = zt[i]
@@ -488,9 +500,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 conv[b] = True
             if small or (control == 1 and not accepted) or it == max_iter - 1:
                 break
-            _lower_mul(L, z, e)
-            _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
-                        D, dD)  # fmt: skip
+            if not have_jac:
+                _lower_mul(L, z, e)
+                _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval,
+                            xt, D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
             _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
             _mul_t(Hw, rw, g)
