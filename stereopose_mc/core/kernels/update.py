@@ -4,11 +4,11 @@ Twins of ``core.kalman.ekf_update`` and ``core.kalman.iekf_update`` (whose docst
 the equations), fused with the measurement model of ``core.kernels.model`` and run one
 trial at a time: every product with ``H`` touches only the 16 non-zero columns of a row
 (a feature's rows see ``rho, rho_dot, omega, q`` and its own point; the pseudo rows
-``omega, q, k``), the symmetric positive definite systems (``S`` for the EKF, the whitened
-``A = I + Hw^T Hw`` for the IEKF, ``P-`` itself) are solved by small hand-written Cholesky
-factorizations; ``P+`` is the Joseph form of the numpy path evaluated for the optimal gain
-(``P - W^T W`` for the EKF, ``L A^-1 L^T`` for the IEKF, positive semi-definite by
-construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
+``omega, q, k``), the symmetric positive definite systems (the whitened ``A = I + Hw^T Hw``
+of both updates, the EKF being one Gauss-Newton step of the IEKF, and ``P-`` itself) are
+solved by Cholesky factorizations (LAPACK's ``potrf`` in place, ``_cholesky``); ``P+`` is the
+Joseph form of the numpy path evaluated for the optimal gain (``L A^-1 L^T``, positive
+semi-definite by construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
 line search (MAP cost, step halving) and unit-free stopping test run per trial.
 
 Both kernels take the filter's ``chart``: 0, the full state (``filters.relnav``: ``x + dx``,
@@ -56,8 +56,8 @@ def _cholesky(A, L):
 
     LAPACK's ``potrf`` on ``L`` in place (``L`` may be a block ``M[:m, :m]`` of a larger C-order
     array): a C-order lower triangle is the upper triangle of the same memory read in Fortran
-    order, hence ``uplo = "U"``. ``potrf`` fails (``info > 0``) on a
-    matrix that is not positive definite; a NaN pivot fails too (``not d > 0``).
+    order, hence ``uplo = "U"``. ``potrf`` fails (``info > 0``) on a matrix that is not positive
+    definite or meets a NaN pivot; an infinite pivot is caught by the check of the diagonal.
     """
     n = A.shape[0]
     for i in range(n):
