@@ -17,8 +17,9 @@ Filters with the aligned error state (``error_state: aligned``, the default of t
 IEKF and MEKF; ``filters/mekf.py`` is their reference) run the same kernels in that
 chart (``core.kernels.aligned``): ``P- = Phi_e P Phi_e^T + T Q T^T`` on the sparse
 ``Phi_e = T(x-) Phi S(x+)``, and the updates on the row-sparse ``H_e = H S`` with the reset
-``x+ = x- [+] e+`` (the EKF's iterated first update included). The attitude chart and the
-UKF keep their numpy step.
+``x+ = x- [+] e+`` (the EKF's iterated first update included). The attitude chart keeps
+its numpy step. The UKF (``filters/ukf.py``) propagates and measures its sigma points with
+the compiled RK4 and ``h`` (``_propagator``, ``_measurer``); its unscented algebra stays numpy.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from ..core.kernels import aligned as ka
 from ..core.kernels import model as km
 from ..core.kernels import update as ku
 from ..core.orbit import leader_kinematics
-from . import estimators, relnav
+from . import estimators, relnav, ukf
 
 Array = NDArray[np.float64]
 COMPILED_KINDS = ("ekf", "iekf", "mekf")  # filter types whose predict/update have compiled kernels
@@ -96,8 +97,10 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
     """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
+    if fs.kind == "ukf":  # its sigma points through the compiled RK4
+        return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup))
     chart = chart_code(fs)
-    if chart is None:  # the attitude chart and the UKF keep their numpy step
+    if chart is None:  # the attitude chart keeps its numpy step
         return estimators.predict(x, P, t, fs, setup)
     x, P = _writable(x), _writable(P)
     B, n = x.shape
@@ -112,6 +115,33 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     if chart == 1:
         return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
+
+
+def _propagator(t: float, fs: FilterSetup, setup: Setup):
+    """``states (M, n) -> x(t + dt)``: the filter's RK4 with the quaternion renormalized, compiled
+    (``model.propagate_batch``; ``relnav.renormalize(dynamics.propagate(...))`` in numpy)."""
+    h = setup.dt / fs.substeps
+    r, nd, ndd = _leader(setup.orbit, float(t), h, 2 * fs.substeps + 1)
+
+    def propagate(states: Array) -> Array:
+        return km.propagate_batch(_writable(states), r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
+
+    return propagate
+
+
+def _measurer(setup: Setup, step: relnav.StepMeasurement):
+    """``(states (M, n), trials (M,)) -> h (M, m)``: ``relnav.measurement_model``'s ``h`` without ``H``, compiled
+    (``model.measure_h_batch``), the pseudo rows with each state's trial's measured acceleration."""
+    _, nd, ndd = _leader(setup.orbit, float(step.t))
+    nd, ndd = float(nd[0]), float(ndd[0])
+    vis = np.flatnonzero(step.visible).astype(np.int64)
+
+    def measure_h(states: Array, trials: Array) -> Array:
+        alpha = _writable(step.alpha[trials]) if setup.pseudo else np.zeros((states.shape[0], 3))
+        return km.measure_h_batch(_writable(states), vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
+                                  alpha, nd, ndd)  # fmt: skip
+
+    return measure_h
 
 
 def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd: float, chart: int, ne: int):
@@ -139,11 +169,13 @@ def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> di
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
+    if fs.kind == "ukf":  # its sigma points through the compiled h (the iterated first update: numpy's)
+        return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step))
     hit = _CONSTANTS.get(("supported", id(fs)))
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
     if not hit[2] or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
-        return estimators.update(x, P, step, rows, fs, setup)  # UKF, attitude chart, LM, full state's first iterated
+        return estimators.update(x, P, step, rows, fs, setup)  # attitude chart, LM, full state's first iterated
     return compiled_update(x, P, step, rows, fs, setup)
 
 

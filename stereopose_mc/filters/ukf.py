@@ -21,27 +21,46 @@ from . import mekf, relnav
 from .mekf import error_process_noise
 
 
-def predict(x, P, t, fs: FilterSetup, setup: Setup):
-    """``(x-, P-)`` with ``P`` the error-state covariance."""
+def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None):
+    """``(x-, P-)`` with ``P`` the error-state covariance.
+
+    ``propagate(states (M, n))``: the RK4 of the step with the quaternion renormalized, for
+    any number of states (default: ``dynamics.propagate``; ``filters.compiled`` passes its
+    compiled twin).
+    """
+    if propagate is None:
+
+        def propagate(states):
+            return relnav.renormalize(dynamics.propagate(states, t, setup.dt, setup.orbit, fs.substeps))
 
     def f(states, _idx):
-        return relnav.renormalize(dynamics.propagate(states, t, setup.dt, setup.orbit, fs.substeps))
+        return propagate(states)
 
     # Q is mapped at the propagated centre point (the mean's chart differs from it by the mean increment)
-    x_c = relnav.renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
+    x_c = propagate(x)
     ch = mekf.chart_of(fs)
     return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag, ch), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
                       chart=ch.chart, local=ch.local)  # fmt: skip
 
 
-def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup) -> kf.Update:
+def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup, measure_h=None) -> kf.Update:
+    """The unscented update (or, at an iterated first update, the error-state filter's iterated one).
+
+    ``measure_h(states (M, n), trials (M,))``: the stacked ``h`` of the step at each state, with
+    the pseudo rows of the state's trial (index into the step's batch); default
+    ``relnav.measurement_model``, ``filters.compiled`` passes its compiled twin.
+    """
     if relnav.iterated_at(fs, setup, step):  # first_update: iterated, the error-state filter's iterated update
         return mekf.update(x, P, step, rows, fs, setup)
-    measure = relnav.measurement_model(setup, step)
     R = relnav.measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
+    if measure_h is None:
+        measure = relnav.measurement_model(setup, step)
+
+        def measure_h(states, trials):
+            return measure(states, trials, jac=False)[0]
 
     def h(states, idx):
-        return measure(states, rows[idx], jac=False)[0]
+        return measure_h(states, rows[idx])
 
     x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
                                       chart=mekf.chart_of(fs).chart)

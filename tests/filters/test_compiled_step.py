@@ -193,17 +193,55 @@ def _agree(case_overrides, trials, tol):
         np.testing.assert_array_equal(ra.iterations[ok], rb.iterations[ok])
 
 
+def test_every_step_of_the_ukf_agrees(monkeypatch):
+    """The UKF under ``--kernels compiled``: its sigma points through the compiled RK4 and ``h``
+    (``model.propagate_batch``, ``model.measure_h_batch``), the unscented algebra and the iterated first update
+    numpy's; every step equal to the numpy UKF's to round-off, in the aligned and the attitude chart."""
+    from stereopose_mc.mc import trial
+
+    both = _Both()
+    monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
+    over = {**SHORT, "filters": [{"type": "ukf", "first_update": "iterated"},
+                                 {"type": "ukf", "error_state": "attitude", "name": "ukf_att"}]}  # fmt: skip
+    scn, setup, truth, exact, filters = _prepared(error_state=None, **over)
+    assert {f.kind for f in filters} == {"ukf"} and {f.error_state for f in filters} == {"aligned", "attitude"}
+    run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
+    _steps_agree(both, filters)
+
+
+def test_measure_h_batch_equals_the_numpy_model():
+    """``model.measure_h_batch`` (the UKF's sigma points) equals ``relnav.measurement_model``'s ``h`` and
+    ``measure_batch``'s, with per-state pseudo rows."""
+    from stereopose_mc.core.kernels import model as km
+    from stereopose_mc.filters import compiled, relnav
+
+    scn, setup, truth, exact, _ = _prepared(error_state="aligned", **SHORT)
+    k = 7
+    rng = np.random.default_rng(3)
+    x = truth.x[k] + 1e-3 * rng.standard_normal((9, truth.x.shape[-1]))
+    alpha = truth.alpha[k] + 1e-4 * rng.standard_normal((4, 3))
+    step = relnav.StepMeasurement(np.zeros((4, 1)), alpha, exact.visible[k], truth.t[k])
+    trials = rng.integers(0, 4, size=9)
+    got = compiled._measurer(setup, step)(x, trials)
+    ref = relnav.measurement_model(setup, step)(x, trials, jac=False)[0]
+    np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
+    vis = np.flatnonzero(exact.visible[k]).astype(np.int64)
+    _, nd, ndd = compiled._leader(setup.orbit, float(truth.t[k]))
+    hx, _ = km.measure_batch(x, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
+                             np.ascontiguousarray(alpha[trials]), float(nd[0]), float(ndd[0]), False)  # fmt: skip
+    np.testing.assert_array_equal(got, hx)
+
+
 def test_filter_types_without_kernels_fall_back_to_their_numpy_step_exactly():
-    """The attitude chart and the UKF have no compiled kernels: ``--kernels compiled`` runs their own numpy step,
-    bit for bit (Levenberg-Marquardt runs the numpy update after the compiled prediction)."""
+    """The attitude chart has no compiled kernels: ``--kernels compiled`` runs its own numpy step, bit for bit
+    (Levenberg-Marquardt runs the numpy update after the compiled prediction)."""
     over = {"time": {"dt_s": 1.0, "duration_s": 8.0, "error_window_start_s": 2.0},
-            "filters": [{"type": "mekf", "error_state": "attitude"}, {"type": "ukf", "first_update": "iterated"},
-                        {"type": "iekf", "error_state": "attitude"}]}  # fmt: skip
+            "filters": [{"type": "mekf", "error_state": "attitude"}, {"type": "iekf", "error_state": "attitude"}]}
     scn, setup, truth, exact, filters = _prepared(error_state=None, **over)
     a = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="numpy")
     b = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="compiled")
     for ra, rb in zip(a.runs, b.runs):
-        assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/UKF/IEKF step
+        assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/IEKF step
         np.testing.assert_array_equal(ra.x_final, rb.x_final)
         np.testing.assert_array_equal(ra.errors, rb.errors)
 

@@ -658,6 +658,22 @@ def measure_batch(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, co
     return hx, Hval
 
 
+@njit(**_JIT)
+def measure_h_batch(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd):
+    """``h (B, m)`` of ``measure_batch`` alone (no ``H``: one scratch row block, not ``B x m x 16`` values), for
+    the sigma points of the UKF (``2 n + 1`` states per trial)."""
+    B, n = x.shape
+    C = 9 if disparity else 8
+    m = vis.shape[0] * C + (3 if pseudo else 0)
+    hx = np.empty((B, m))
+    Hval = np.zeros((m, NNZ))
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, False, hx[b], Hval, D, dD)
+    return hx
+
+
 def dense(Hval: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
     """Dense ``(B, m, n)`` from the row-sparse ``H`` (duplicate padding columns carry value 0)."""
     B, m, _ = Hval.shape
