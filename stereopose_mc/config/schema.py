@@ -324,7 +324,7 @@ class _FilterBase(_Model):
     gating: GatingConfig | None = Field(
         default=None,
         description="`{probability: 0.999}`: per-feature chi-square gate on the innovation before the update (the "
-        "IEKF at its first iterate); null = no gate. See docs/filters.md",
+        "IEKF at its first iterate); null = no gate; not for the UKF, which has none. See docs/filters.md",
     )
     measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
     process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
@@ -390,6 +390,14 @@ class UKFConfig(_FilterBase):
         description="'iterated': the first update (t = dt) is the MEKF's iterated update (line search, Mahalanobis "
         "stopping, tolerance 0.01, at most 10 iterations), the later ones unscented",
     )
+
+    @field_validator("gating")
+    @classmethod
+    def _no_gate(cls, v):
+        if v is not None:  # it used to be accepted and ignored
+            raise ValueError("the UKF has no innovation gate (its update is unscented); remove 'gating', or use "
+                             "type iekf, ekf or mekf for a gated filter")  # fmt: skip
+        return v
 
 
 FilterConfig = Annotated[Union[IEKFConfig, EKFConfig, MEKFConfig, UKFConfig], Field(discriminator="type")]

@@ -46,6 +46,9 @@ def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None):
 def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup, measure_h=None) -> kf.Update:
     """The unscented update (or, at an iterated first update, the error-state filter's iterated one).
 
+    The features the tracker did not deliver (``step.feature_mask``) are taken out of the
+    update, as in the other filters; the UKF has no gate (the scenario rejects ``gating``).
+
     ``measure_h(states (M, n), trials (M,))``: the stacked ``h`` of the step at each state, with
     the pseudo rows of the state's trial (index into the step's batch); default
     ``relnav.measurement_model``, ``filters.compiled`` passes its compiled twin.
@@ -59,10 +62,23 @@ def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Set
         def measure_h(states, trials):
             return measure(states, trials, jac=False)[0]
 
+    nvis = int(step.visible.sum())
+    B = x.shape[0]
+    used = np.full(B, nvis)
+    model = measure_h
+    if step.feature_mask is not None:  # the features the tracker did not deliver: h = y on their rows at every sigma
+        # point, so they add nothing to y_bar, S, C or the NIS (as gating.masked_measure for the other filters)
+        C = relnav.channel_variances(fs, setup.disparity).size
+        keep = np.ones(step.y.shape, bool)
+        keep[:, : nvis * C] = np.repeat(step.feature_mask, C, axis=-1)
+        used = step.feature_mask[rows].sum(axis=-1)
+
+        def model(states, trials):
+            return np.where(keep[trials], measure_h(states, trials), step.y[trials])
+
     def h(states, idx):
-        return measure_h(states, rows[idx])
+        return model(states, rows[idx])
 
     x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
                                       chart=mekf.chart_of(fs).chart)
-    B = x.shape[0]
-    return kf.Update(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool))
+    return relnav.GatedUpdate(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool), np.zeros(B, int), used)

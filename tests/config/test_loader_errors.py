@@ -87,6 +87,8 @@ CASES = [
     ("whole-steps", "dt_s: 1.0", "dt_s: 0.3", "dt_s: 0.3", "time", "whole number of dt_s"),
     ("duplicate-filter-label", "{type: ekf}", "{type: iekf}", "filters:", "filters", "labels must be unique"),
     ("bad-enum", "{type: ekf}", "{type: ekf, transition: magic}", "magic", "filters.1.transition", "'expm' or 'taylor'"),
+    ("ukf-gate", "{type: ekf}", "{type: ukf, gating: {probability: 0.999}}", "gating", "filters.1.gating",
+     "the UKF has no innovation gate"),
 ]  # fmt: skip
 
 

@@ -209,6 +209,49 @@ def test_every_step_of_the_ukf_agrees(monkeypatch):
     _steps_agree(both, filters)
 
 
+@pytest.mark.parametrize("kernels", ["numpy", "compiled"])
+def test_ukf_takes_the_features_the_tracker_dropped_out_of_its_update(kernels):
+    """A feature masked out by the tracker (``step.feature_mask``) leaves the UKF's update as if it were not in view:
+    the same ``x+``, ``P+`` and NIS as the update without that feature (an independent construction of the step),
+    and ``features_used`` counts it out."""
+    from stereopose_mc.filters import relnav
+    from stereopose_mc.mc.trial import step_functions
+
+    scn, setup, truth, exact, fss = _prepared(error_state=None, **{**SHORT, "filters": [{"type": "ukf"}]})
+    fs, sf = fss[0], step_functions(kernels)
+    rng = np.random.default_rng(8)
+    k, B = 6, 4
+    ne = setup.x0.size - 1
+    A = 0.01 * rng.normal(size=(B, ne, ne))
+    P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(ne)
+    x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), 0.01 * rng.normal(size=(B, ne)))
+    vis = exact.visible[k].copy()
+    y = exact.y[k] + 1e-4 * rng.normal(size=(B,) + exact.y[k].shape)
+    alpha = np.broadcast_to(truth.alpha[k], (B, 3)).copy()
+    drop = np.flatnonzero(vis)[2]  # the third visible feature, dropped in trials 1 and 3
+    keep = np.ones((B, vis.sum()), bool)
+    keep[[1, 3], 2] = False
+    rows = np.arange(B)
+    masked = sf.update(x, P, relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), alpha, vis,
+                                                    truth.t[k], feature_mask=keep), rows, fs, setup)  # fmt: skip
+    vis_less = vis.copy()
+    vis_less[drop] = False
+    without = sf.update(x, P, relnav.StepMeasurement(relnav.stack_measurement(y, vis_less, setup.pseudo), alpha,
+                                                     vis_less, truth.t[k]), rows, fs, setup)  # fmt: skip
+    full = sf.update(x, P, relnav.StepMeasurement(relnav.stack_measurement(y, vis, setup.pseudo), alpha, vis,
+                                                  truth.t[k]), rows, fs, setup)  # fmt: skip
+    s = np.sqrt(np.diagonal(P, axis1=-2, axis2=-1))
+    for b in (1, 3):
+        dev = aligned.local(without.x[b : b + 1], masked.x[b : b + 1])[0]
+        assert np.max(np.abs(dev) / s[b]) < 1e-9
+        np.testing.assert_allclose(masked.P[b], without.P[b], rtol=0, atol=1e-9 * np.abs(P[b]).max())
+        assert masked.nis[b] == pytest.approx(without.nis[b], rel=1e-8)
+    for b in (0, 2):  # untouched trials: the update with every feature
+        np.testing.assert_array_equal(masked.x[b], full.x[b])
+    np.testing.assert_array_equal(masked.features_used, [vis.sum(), vis.sum() - 1, vis.sum(), vis.sum() - 1])
+    assert not np.allclose(full.x[1], masked.x[1])  # the dropped feature did carry information
+
+
 def test_measure_h_batch_equals_the_numpy_model():
     """``model.measure_h_batch`` (the UKF's sigma points) equals ``relnav.measurement_model``'s ``h`` and
     ``measure_batch``'s, with per-state pseudo rows."""
