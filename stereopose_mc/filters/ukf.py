@@ -17,7 +17,7 @@ from ..config.resolve import FilterSetup, Setup
 from ..core import dynamics
 from ..core import kalman as kf
 from ..core import unscented as ut
-from . import mekf, relnav
+from . import gating, mekf, relnav
 from .mekf import error_process_noise
 
 
@@ -62,22 +62,19 @@ def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Set
         def measure_h(states, trials):
             return measure(states, trials, jac=False)[0]
 
-    nvis = int(step.visible.sum())
-    B = x.shape[0]
-    used = np.full(B, nvis)
-    model = measure_h
-    if step.feature_mask is not None:  # the features the tracker did not deliver: h = y on their rows at every sigma
-        # point, so they add nothing to y_bar, S, C or the NIS (as gating.masked_measure for the other filters)
-        C = relnav.channel_variances(fs, setup.disparity).size
-        keep = np.ones(step.y.shape, bool)
-        keep[:, : nvis * C] = np.repeat(step.feature_mask, C, axis=-1)
-        used = step.feature_mask[rows].sum(axis=-1)
+    def model(states, trials, jac=False):
+        return measure_h(states, trials), None
 
-        def model(states, trials):
-            return np.where(keep[trials], measure_h(states, trials), step.y[trials])
+    B = x.shape[0]
+    used = np.full(B, int(step.visible.sum()))
+    if step.feature_mask is not None:  # the features the tracker did not deliver: h = y on their rows at every sigma
+        # point (gating.masked_measure, as for the other filters), so they add nothing to y_bar, S, C or the NIS
+        keep = step.feature_mask[rows]
+        model = gating.masked_measure(model, step.y, rows, keep, relnav.channel_variances(fs, setup.disparity).size)
+        used = keep.sum(axis=-1)
 
     def h(states, idx):
-        return model(states, rows[idx])
+        return model(states, rows[idx], False)[0]
 
     x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
                                       chart=mekf.chart_of(fs).chart)

@@ -67,34 +67,15 @@ def _combine(out, lo, hi, M, coef, k0, k1, sign):
 
 
 @njit(**_JIT)
-def _dot(a, b, lo, hi):
-    """``sum_{lo <= k < hi} a[k] b[k]`` in four partial sums, added at the end.
+def _dot_row(M, i, b, lo, hi):
+    """``sum_{lo <= k < hi} M[i, k] b[k]`` in four partial sums, added at the end.
 
     A single running sum is one chain of dependent additions (each waits for the last: ~4
     cycles per term), which the compiler may not reorder without ``fastmath``; four
     independent chains run ~4x faster at the lengths of these kernels (30-140). The order is
-    fixed, so a trial's result does not depend on anything but its own inputs.
+    fixed, so a trial's result does not depend on anything but its own inputs. Reads row ``i``
+    in place (no row view to build: this runs once per row of a solve).
     """
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    k = lo
-    while k + 4 <= hi:
-        s0 += a[k] * b[k]
-        s1 += a[k + 1] * b[k + 1]
-        s2 += a[k + 2] * b[k + 2]
-        s3 += a[k + 3] * b[k + 3]
-        k += 4
-    while k < hi:
-        s0 += a[k] * b[k]
-        k += 1
-    return (s0 + s1) + (s2 + s3)
-
-
-@njit(**_JIT)
-def _dot_row(M, i, b, lo, hi):
-    """``_dot(M[i], b, lo, hi)`` read in place (no row view to build: these run once per row of a solve)."""
     s0 = 0.0
     s1 = 0.0
     s2 = 0.0
@@ -110,6 +91,12 @@ def _dot_row(M, i, b, lo, hi):
         s0 += M[i, k] * b[k]
         k += 1
     return (s0 + s1) + (s2 + s3)
+
+
+@njit(**_JIT)
+def _dot(a, b, lo, hi):
+    """``sum_{lo <= k < hi} a[k] b[k]`` of two vectors: ``_dot_row`` on ``a`` as a one-row matrix."""
+    return _dot_row(a.reshape((1, a.shape[0])), 0, b, lo, hi)
 
 
 # --- attitude building blocks ------------------------------------------------------
