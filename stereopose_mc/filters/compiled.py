@@ -13,13 +13,14 @@ work is done:
   (Levenberg-Marquardt runs ``relnav.update``); the gate's distances come from the
   compiled ``h``/``H`` and the numpy gating functions.
 
-Filters with the aligned error state (``error_state: aligned``, the default of the EKF,
-IEKF and MEKF; ``filters/mekf.py`` is their reference) run the same kernels in that
-chart (``core.kernels.aligned``): ``P- = Phi_e P Phi_e^T + T Q T^T`` on the sparse
+Filters with an error state (``filters/mekf.py`` is their reference) run the same kernels
+in its chart: the aligned one (``error_state: aligned``, the default of the EKF, IEKF and
+MEKF; ``core.kernels.aligned``) or the attitude one (``error_state: attitude``, the
+multiplicative EKF; ``core.kernels.attitude``): ``P- = Phi_e P Phi_e^T + T Q T^T`` with
 ``Phi_e = T(x-) Phi S(x+)``, and the updates on the row-sparse ``H_e = H S`` with the reset
-``x+ = x- [+] e+`` (the EKF's iterated first update included). The attitude chart keeps
-its numpy step. The UKF (``filters/ukf.py``) propagates and measures its sigma points with
-the compiled RK4 and ``h`` (``_propagator``, ``_measurer``); its unscented algebra stays numpy.
+``x+ = x- [+] e+`` (the EKF's iterated first update included). The UKF (``filters/ukf.py``)
+propagates and measures its sigma points with the compiled RK4 and ``h`` (``_propagator``,
+``_measurer``); its unscented algebra stays numpy.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
 from ..core.kernels import aligned as ka
+from ..core.kernels import attitude as katt
 from ..core.kernels import model as km
 from ..core.kernels import update as ku
 from ..core.orbit import leader_kinematics
@@ -43,12 +45,16 @@ FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="ma
 
 
 def chart_code(fs: FilterSetup) -> int | None:
-    """The kernels' ``chart`` of a filter: 0 the full state, 1 the aligned error state, None: no kernels."""
+    """The kernels' ``chart`` of a filter: 0 the full state, 1 the aligned error state, 2 the attitude error
+    state, None: no kernels."""
     if fs.kind not in COMPILED_KINDS:
         return None
     if fs.kind == "mekf":  # always an error state (the attitude chart for anything but "aligned")
-        return 1 if fs.error_state == "aligned" else None
-    return {"full": 0, "aligned": 1}.get(fs.error_state)
+        return 1 if fs.error_state == "aligned" else 2
+    return {"full": 0, "aligned": 1, "attitude": 2}.get(fs.error_state)
+
+
+CHART_KERNELS = {1: ka, 2: katt}  # the error-state charts' measurement kernels
 
 
 @functools.lru_cache(maxsize=4096)
@@ -100,7 +106,7 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     if fs.kind == "ukf":  # its sigma points through the compiled RK4
         return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup))
     chart = chart_code(fs)
-    if chart is None:  # the attitude chart keeps its numpy step
+    if chart is None:  # no kernels for this filter type
         return estimators.predict(x, P, t, fs, setup)
     x, P = _writable(x), _writable(P)
     B, n = x.shape
@@ -112,8 +118,8 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
         x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
     else:  # the same kernels in one call
         x_pred, T = km.predict_state_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, setup.dt, fs.taylor_order)
-    if chart == 1:
-        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n))
+    if chart != 0:
+        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n), chart)
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
 
@@ -147,15 +153,17 @@ def _measurer(setup: Setup, step: relnav.StepMeasurement):
 def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd: float, chart: int, ne: int):
     """``h`` and the dense ``H`` (``b, m, ne``) at the prior, in the filter's coordinates (for the gate).
 
-    ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1: ``mekf.error_measurement`` at ``e = 0``.
+    ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1, 2: ``mekf.error_measurement`` at ``e = 0``.
     """
     C = 9 if setup.disparity else 8
     args = (vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha, nd, ndd, True)
     if chart == 0:
         hx, Hval = km.measure_batch(x, *args)
         return hx, km.dense(Hval, km.measurement_columns(ne, vis, C, setup.pseudo), ne)
-    hx, Hval = ka.measure_batch(x, np.zeros((x.shape[0], ne)), *args)
-    return hx, ka.dense(Hval, ka.measurement_columns(ne, vis, C, setup.pseudo), ne)
+    k = CHART_KERNELS[chart]
+    hx, Hval = k.measure_batch(x, np.zeros((x.shape[0], ne)), *args)
+    cols = k.measurement_columns(ne, vis, C, setup.pseudo)
+    return hx, (ka.dense(Hval, cols, ne) if chart == 1 else km.dense(Hval, cols, ne))
 
 
 def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> dict | None:
@@ -175,7 +183,7 @@ def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: Fi
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
     if not hit[2] or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
-        return estimators.update(x, P, step, rows, fs, setup)  # attitude chart, LM, full state's first iterated
+        return estimators.update(x, P, step, rows, fs, setup)  # LM, full state's first iterated
     return compiled_update(x, P, step, rows, fs, setup)
 
 
@@ -203,7 +211,7 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     C = 9 if setup.disparity else 8
     m = vis.size * C + (3 if setup.pseudo else 0)
     R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
-    cols = (ka if chart_code(fs) == 1 else km).measurement_columns(ne, vis, C, setup.pseudo)
+    cols = CHART_KERNELS.get(chart_code(fs), km).measurement_columns(ne, vis, C, setup.pseudo)
     out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)))
     if len(_CONSTANTS) > 64:  # a perturbed truth or a pseudo-row warm-up makes a new setup per step: bounded
         _CONSTANTS.clear()
@@ -273,8 +281,8 @@ def _patch(u, bad: Array, v):
 
 
 def supported(fs: FilterSetup) -> bool:
-    """Filters the compiled update covers (others run ``estimators.update``): the EKF and the IEKF in the full
-    state or the aligned error state and the aligned MEKF, their iterated updates with line search or none."""
+    """Filters the compiled update covers (others run ``estimators.update``): the EKF, the IEKF and the MEKF in
+    any chart (full state, aligned or attitude error state), their iterated updates with line search or none."""
     if chart_code(fs) is None:
         return False
     iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)

@@ -358,15 +358,15 @@ def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Ar
 
 def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
                 kernels: str = "numpy") -> tuple[dict[str, Array], Array | None]:  # fmt: skip
-    """``nees_of`` and, from the compiled kernel (aligned error state or full state), whether ``P`` is positive
-    definite.
+    """``nees_of`` and, from the compiled kernel, whether ``P`` is positive definite.
 
     The second item is None where the numpy path computed the NEES (``_check`` then factorizes ``P``).
     """
-    if kernels == "compiled" and (P.shape[-1] == x.shape[-1] or error_state == "aligned"):
+    if kernels == "compiled":
         from ..core.kernels import consistency  # the same numbers to round-off (tests/core/test_kernels_consistency.py)
 
-        return consistency.nees_and_pd(x, P, x_true)
+        attitude = P.shape[-1] != x.shape[-1] and error_state != "aligned"  # aligned_covariance's cases
+        return consistency.nees_and_pd(x, P, x_true, attitude)
     with np.errstate(all="ignore"):
         return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true), None
 

@@ -238,7 +238,7 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
         "assert ku._cholesky(A, L)\n"
         "x = np.zeros((2, 30)); x[:, 9] = 1.0; x[:, 13:28] = rng.standard_normal((2, 15)); xt = x.copy()\n"
         "xt[:, 0] += 0.1\n"
-        "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt)\n"
+        "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt, False)\n"
         "assert pd.all() and np.isfinite(out).all(), out\n"
         "print('ok', round(float(out[0, 0]), 6))\n"
     )
@@ -247,7 +247,7 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
     x[:, 13:28] = np.random.default_rng(0).standard_normal((2, 15))
     from stereopose_mc.core.kernels import consistency as kc
 
-    kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), x.copy())  # compiled (and cached) here
+    kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), x.copy(), False)  # compiled, cached here
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     for _ in range(2):  # the first may still compile (another specialization); the second loads from the cache
         r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)

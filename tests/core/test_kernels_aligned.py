@@ -107,6 +107,6 @@ def test_covariance_predict_matches_the_dense_error_state_transition(order):
     Phi_e = al.error_map(x_pred) @ Phi @ al.chart_jacobian(x)
     T = al.error_map(x_pred)
     want = Phi_e @ P @ np.swapaxes(Phi_e, -1, -2) + (T * Q[:, None, :]) @ np.swapaxes(T, -1, -2)
-    got = ka.predict_covariance_batch(x, x_pred, Tb, P, Q)
+    got = ka.predict_covariance_batch(x, x_pred, Tb, P, Q, 1)
     assert rel(got, want) < 1e-12
     assert np.array_equal(got, np.swapaxes(got, -1, -2))

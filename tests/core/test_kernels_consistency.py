@@ -95,3 +95,24 @@ def test_full_state_covariance_is_mapped_like_the_numpy_path():
         np.testing.assert_allclose(got[k], ref[k], rtol=1e-9, err_msg=k)
     P[3] = -P[3]  # not positive definite: flagged (the engine's divergence check reads the flag)
     assert not kc.nees_and_pd(xh, P, xt)[1][3]
+
+
+def test_attitude_chart_covariance_is_mapped_like_the_numpy_path():
+    """An attitude-chart filter's ``P (n-1 x n-1)`` enters as ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, two
+    solves in numpy; ``T_aligned S_attitude`` in the kernel): the same NEES, and ``pd`` that of ``P`` itself."""
+    from stereopose_mc.mc import trial
+
+    xh, Pa, xt = _case(25, 4)
+    P = aligned.to_attitude_chart(xh, Pa)  # an aligned covariance seen in the attitude chart
+    assert np.abs(P - Pa).max() > 1e-3 * np.abs(Pa).max()  # really another matrix
+    ref = trial.nees_of(xh, P, xt, "attitude", "numpy")
+    got, pd = kc.nees_and_pd(xh, P, xt, attitude=True)
+    assert pd.all()
+    for k in kc.KEYS:
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-9, err_msg=k)
+        np.testing.assert_allclose(got[k], aligned.nees_report(xh, Pa, xt)[k], rtol=1e-9, err_msg=k)
+    # the engine's entry point picks the mapping from the filter's error state
+    eng, _ = trial.nees_and_pd(xh, P, xt, "attitude", "compiled")
+    np.testing.assert_array_equal(eng["nees"], got["nees"])
+    P[3] = -P[3]
+    assert not kc.nees_and_pd(xh, P, xt, attitude=True)[1][3]

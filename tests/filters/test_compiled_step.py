@@ -1,8 +1,9 @@
 """Whole trials through ``--kernels numpy`` and ``--kernels compiled`` agree (issue 14).
 
 The compiled step computes the same equations in another order, so the two paths differ
-by round-off. Required, in the full state and in the aligned error state (there the
-states are compared in the error state, ``aligned.local``), at every step of whole case-B
+by round-off. Required, in the full state and in the aligned and the attitude error states
+(there the states are compared in the error state, ``aligned.local`` or
+``errorstate.local``), at every step of whole case-B
 trials (both filters as configured, the gated filters of case B with tracker dropouts and
 outliers, the aligned MEKF and the EKF's iterated first update), from the same posterior,
 for the trials
@@ -32,7 +33,7 @@ import yaml
 
 from stereopose_mc.config import load_scenario_text
 from stereopose_mc.config.resolve import filter_setup_of, setup_of
-from stereopose_mc.core import aligned
+from stereopose_mc.core import aligned, errorstate
 from stereopose_mc.mc.trial import Bounds, run_chunk
 from stereopose_mc.sim import measurements as meas
 from stereopose_mc.sim.truth import simulate_truth
@@ -54,12 +55,6 @@ def _prepared(case="caseB", error_state="full", **overrides):
 class _Both:
     """A step whose ``predict``/``update`` run both paths, record their difference, return numpy's."""
 
-    def __init__(self):
-        from stereopose_mc.filters import compiled, estimators
-
-        self.np, self.nb = estimators, compiled
-        self.dx, self.dP, self.floor, self.floorP, self.kind = [], [], [], [], []
-
     @staticmethod
     def sane(x, P):
         """Trials still far inside the divergence bounds (a filter blowing up is compared no further)."""
@@ -67,10 +62,18 @@ class _Both:
         return np.isfinite(x).all(-1) & np.isfinite(P).all((-1, -2)) & (np.abs(x).max(-1) < 1e4) & (d > 0).all(-1) \
             & (d.max(-1) < 1e4)  # fmt: skip
 
+    def __init__(self, error_state="aligned"):
+        from stereopose_mc.filters import compiled, estimators
+
+        self.np, self.nb, self.error_state = estimators, compiled, error_state
+        self.dx, self.dP, self.floor, self.floorP, self.kind = [], [], [], [], []
+
     @staticmethod
-    def deviation(xa, xb, ne):
-        """``xb - xa`` in the filter's coordinates (``ne``): the full state, or the aligned error state at ``xa``."""
-        return xb - xa if xa.shape[-1] == ne else aligned.local(xa, xb)
+    def deviation(xa, xb, ne, error_state="aligned"):
+        """``xb - xa`` in the filter's coordinates (``ne``): the full state, or the error state at ``xa``."""
+        if xa.shape[-1] == ne:
+            return xb - xa
+        return (aligned if error_state == "aligned" else errorstate).local(xa, xb)
 
     def _record(self, xa, Pa, xb, Pb):
         ok = self.sane(xa, Pa)
@@ -80,7 +83,7 @@ class _Both:
         if xa.shape[-1] != Pa.shape[-1]:  # aligned: e_c, e_cdot, e_omega ~ rho, rho_dot, omega; delta ~ |q| = 1
             scale = np.concatenate([scale[:, :9], np.ones((len(xa), 3)), scale[:, 13:]], axis=-1)
         s = np.maximum(s, 1e6 * np.finfo(float).eps * scale)  # a sigma below the state's own round-off: that
-        self.dx.append(np.max(np.abs(self.deviation(xa, xb, Pa.shape[-1])) / s, initial=0.0))
+        self.dx.append(np.max(np.abs(self.deviation(xa, xb, Pa.shape[-1], self.error_state)) / s, initial=0.0))
         self.dP.append(np.max(np.abs(Pa - Pb) / (s[..., :, None] * s[..., None, :]), initial=0.0))
 
     def predict(self, x, P, t, fs, setup):
@@ -97,7 +100,8 @@ class _Both:
         self.kind.append("update")
         ok = self.sane(a.x, a.P)
         s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
-        self.floor.append(np.max(np.abs(self.deviation(a.x[ok], ulp.x[ok], s.shape[-1])) / s, initial=0.0))
+        self.floor.append(np.max(np.abs(self.deviation(a.x[ok], ulp.x[ok], s.shape[-1], self.error_state)) / s,
+                                 initial=0.0))  # fmt: skip
         self.floorP.append(np.max(np.abs(a.P[ok] - ulp.P[ok]) / (s[..., :, None] * s[..., None, :]), initial=0.0))
         np.testing.assert_array_equal(a.iterations, b.iterations)
         return a
@@ -108,12 +112,12 @@ SHORT = {"time": {"dt_s": 1.0, "duration_s": 40.0, "error_window_start_s": 5.0}}
 FREE = {**SHORT, "filters": [{"type": "iekf"}, {"type": "ekf", "first_update": "iterated"}]}
 
 
-@pytest.mark.parametrize("error_state", ["full", "aligned"])
+@pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 @pytest.mark.parametrize("case", ["caseB", "caseB-outliers"])  # the latter: tracker dropouts, outliers, gating
 def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
     from stereopose_mc.mc import trial
 
-    both = _Both()
+    both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
     scn, setup, truth, exact, filters = _prepared(case=case, error_state=error_state, **SHORT)
     if case == "caseB-outliers":  # the gated filters (the ungated ones are hit by 5 % outliers: see the docstring)
@@ -122,14 +126,15 @@ def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
     _steps_agree(both, filters)
 
 
-def test_every_step_of_the_aligned_mekf_and_iterated_first_update_agrees(monkeypatch):
-    """The MEKF (aligned chart, iterated) and the EKF's iterated first update run the compiled kernels too."""
+@pytest.mark.parametrize("error_state", ["aligned", "attitude"])
+def test_every_step_of_the_mekf_and_iterated_first_update_agrees(monkeypatch, error_state):
+    """The MEKF (iterated) and the EKF's iterated first update run the compiled kernels too, in either chart."""
     from stereopose_mc.mc import trial
 
-    both = _Both()
+    both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
     over = {**SHORT, "filters": [{"type": "mekf"}, {"type": "ekf", "first_update": "iterated"}]}
-    scn, setup, truth, exact, filters = _prepared(error_state="aligned", **over)
+    scn, setup, truth, exact, filters = _prepared(error_state=error_state, **over)
     run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
     _steps_agree(both, filters)
 
@@ -163,12 +168,12 @@ def _spread(case_overrides, trials):
     for ra, rb in zip(a.runs, b.runs):
         ok = (ra.diverged_step < 0) & (rb.diverged_step < 0)
         sig = np.sqrt(np.diagonal(ra.P_final[ok], axis1=-2, axis2=-1))
-        dev = _Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1])
+        dev = _Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1], case_overrides.get("error_state"))
         out = max(out, float(np.max(np.abs(dev) / sig, initial=0.0)))
     return out
 
 
-@pytest.mark.parametrize("error_state", ["full", "aligned"])
+@pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 def test_free_running_trials_agree_within_the_round_off_spread(error_state):
     trials = np.arange(6)
     spread = _spread({**FREE, "error_state": error_state}, trials)
@@ -185,7 +190,8 @@ def _agree(case_overrides, trials, tol):
         ok = ra.diverged_step < 0
         assert ok.any()
         sig = np.sqrt(np.diagonal(ra.P_final[ok], axis1=-2, axis2=-1))
-        assert np.max(np.abs(_Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1])) / sig) < tol, ra.label
+        dev = _Both.deviation(ra.x_final[ok], rb.x_final[ok], sig.shape[-1], case_overrides.get("error_state"))
+        assert np.max(np.abs(dev) / sig) < tol, ra.label
         Pa, Pb = ra.P_final[ok], rb.P_final[ok]
         scale = np.sqrt(np.diagonal(Pa, axis1=-2, axis2=-1))
         rel = np.abs(Pa - Pb) / (scale[..., :, None] * scale[..., None, :])
@@ -275,18 +281,24 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
-def test_filter_types_without_kernels_fall_back_to_their_numpy_step_exactly():
-    """The attitude chart has no compiled kernels: ``--kernels compiled`` runs its own numpy step, bit for bit
-    (Levenberg-Marquardt runs the numpy update after the compiled prediction)."""
-    over = {"time": {"dt_s": 1.0, "duration_s": 8.0, "error_window_start_s": 2.0},
-            "filters": [{"type": "mekf", "error_state": "attitude"}, {"type": "iekf", "error_state": "attitude"}]}
-    scn, setup, truth, exact, filters = _prepared(error_state=None, **over)
-    a = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="numpy")
-    b = run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="compiled")
-    for ra, rb in zip(a.runs, b.runs):
-        assert ra.P_final.shape[-1] == setup.x0.size - 1  # error-state covariance: really the MEKF/IEKF step
-        np.testing.assert_array_equal(ra.x_final, rb.x_final)
-        np.testing.assert_array_equal(ra.errors, rb.errors)
+def test_levenberg_marquardt_runs_the_numpy_update_exactly():
+    """Levenberg-Marquardt step control has no compiled update: ``--kernels compiled`` runs the numpy update,
+    bit for bit, after the compiled prediction (so one step from the same prior is numpy's exactly)."""
+    from stereopose_mc.filters import compiled, estimators, mekf
+
+    for error_state in ("aligned", "attitude"):
+        x, P, step, fs, setup = _aligned_step("iekf")
+        fs = dataclasses.replace(fs, step_control="levenberg_marquardt", error_state=error_state)
+        if error_state == "attitude":  # the same prior seen in the attitude chart
+            P = aligned.to_attitude_chart(x, P)
+        assert not compiled.supported(fs) and compiled.chart_code(fs) is not None
+        rows = np.arange(len(x))
+        a = estimators.update(x, P, step, rows, fs, setup)
+        b = compiled.update(x, P, step, rows, fs, setup)
+        assert a.P.shape[-1] == x.shape[-1] - 1  # error-state covariance: really the error-state step
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.P, b.P)
+        np.testing.assert_array_equal(mekf.update(x, P, step, rows, fs, setup).x, b.x)
 
 
 def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
@@ -317,18 +329,22 @@ def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
 
 @pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
 @pytest.mark.parametrize("masked", [False, True])
-def test_aligned_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked):
-    """One aligned update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
+@pytest.mark.parametrize("error_state", ["aligned", "attitude"])
+def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked, error_state):
+    """One error-state update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
     the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
     from stereopose_mc.filters import compiled, mekf
 
     x, P, step, fs, setup = _aligned_step(kind, stopping, masked)
+    if error_state == "attitude":  # the same prior in the attitude chart
+        fs, P = dataclasses.replace(fs, error_state="attitude"), aligned.to_attitude_chart(x, P)
+    assert compiled.chart_code(fs) == {"aligned": 1, "attitude": 2}[error_state]
     vis, B = step.visible, len(x)
     rows = np.arange(B)
     a = mekf.update(x, P, step, rows, fs, setup)
     b = compiled.update(x, P, step, rows, fs, setup)
     s = np.sqrt(np.diagonal(a.P, axis1=-2, axis2=-1))
-    assert np.max(np.abs(aligned.local(a.x, b.x)) / s) < 1e-11
+    assert np.max(np.abs(_Both.deviation(a.x, b.x, P.shape[-1], error_state)) / s) < 1e-11
     assert np.max(np.abs(a.P - b.P) / (s[:, :, None] * s[:, None, :])) < 1e-11
     np.testing.assert_allclose(b.nis, a.nis, rtol=1e-10)
     np.testing.assert_allclose(b.nu, a.nu, rtol=0, atol=1e-14)

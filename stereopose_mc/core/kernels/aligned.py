@@ -35,6 +35,8 @@ import math
 import numpy as np
 from numba import njit
 
+from . import attitude as _att
+from .attitude import _small_quaternion, _small_quaternion_jacobian
 from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -45,25 +47,6 @@ E_POINTS = 12  # first column of the points in the aligned error state (and delt
 @njit(**_JIT)
 def _n_points(n):
     return (n - 15) // 3
-
-
-@njit(**_JIT)
-def _small_quaternion(d, dq):
-    """``dq(d) = [1, d/2] / |[1, d/2]|`` (``errorstate.small_quaternion``)."""
-    u1, u2, u3 = 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
-    s = math.sqrt(1.0 + u1 * u1 + u2 * u2 + u3 * u3)
-    dq[0], dq[1], dq[2], dq[3] = 1.0 / s, u1 / s, u2 / s, u3 / s
-
-
-@njit(**_JIT)
-def _small_quaternion_jacobian(d, Sq):
-    """``d dq / d d`` (4 x 3): ``(I - p p^T) [0; I/2] / |u|`` (``errorstate.small_quaternion_jacobian``)."""
-    u = np.empty(4)
-    u[0], u[1], u[2], u[3] = 1.0, 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
-    s = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + u[3] * u[3])
-    for a in range(4):
-        for j in range(3):
-            Sq[a, j] = ((0.5 if a == j + 1 else 0.0) - (u[a] / s) * (u[j + 1] / s) * 0.5) / s
 
 
 @njit(**_JIT)
@@ -303,8 +286,11 @@ def error_map_batch(x_ref):
 
 
 @njit(**_JIT)
-def predict_covariance_batch(x, x_pred, Tb, P, Q):
+def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     """``P- = Phi_e P Phi_e^T + T(x-) diag(Q) T(x-)^T`` with ``Phi_e = T(x-) Phi S(x+)``, symmetric (``mekf.predict``).
+
+    ``chart`` 1: the aligned error state (this module's ``S`` and ``T``); 2: the attitude error
+    state (``core.kernels.attitude``'s).
 
     ``x (B, n)`` the posteriors at which ``F`` was evaluated, ``x_pred (B, n)`` the predicted
     states, ``Tb = Phi[:, 0:13, c] (B, 13, 15)`` (``model.transition_reduced_batch``; the rest
@@ -326,8 +312,12 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q):
     M = np.empty((ne, ne))
     e0 = np.zeros(ne)
     for b in range(B):
-        _chart_jacobian(x[b], e0, S)
-        _error_map(x_pred[b], T)
+        if chart == 1:
+            _chart_jacobian(x[b], e0, S)
+            _error_map(x_pred[b], T)
+        else:
+            _att._chart_jacobian(x[b], e0, S)
+            _att._error_map(x_pred[b], T)
         for a in range(13, n):
             for j in range(ne):
                 PS[a, j] = S[a, j]

@@ -19,6 +19,10 @@ the truth ``x_true`` (docs/filters.md, Consistency):
 the Cholesky of ``core.kernels.update``. A trial whose covariance is not positive definite
 (or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
 positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
+
+A filter whose covariance is that of the full state or of the attitude error state has it
+mapped to the aligned chart first (``nees_batch``; ``pd`` is then the factorization of the
+``P`` given).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
+from . import attitude as _att
 from .aligned import _error_map
 from .model import _dcm, _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
@@ -218,12 +223,15 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
 
 
 @njit(**_JIT)
-def nees_batch(x_hat, P, x_true):
+def nees_batch(x_hat, P, x_true, attitude):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
-    ``P``: the aligned error state's ``(B, n-1, n-1)``, or the full state's ``(B, n, n)`` (a
+    ``P``: the aligned error state's ``(B, n-1, n-1)``; the full state's ``(B, n, n)`` (a
     full-state filter's), mapped to the aligned chart at the estimate as ``T P T^T``, ``T =
-    aligned.error_map(x_hat)`` (``mc.trial.aligned_covariance``). ``pd``: the estimate and
+    aligned.error_map(x_hat)``; or, with ``attitude``, the attitude error state's ``(B, n-1,
+    n-1)``, mapped as ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, ``M = T_attitude
+    S_aligned``) with ``M^-1 = T_aligned S_attitude`` at the estimate: for a unit quaternion the
+    two charts' maps are exact inverses, so no solve (``mc.trial.aligned_covariance``). ``pd``: the estimate and
     covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
     went through). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
     covariance is not positive definite.
@@ -232,9 +240,13 @@ def nees_batch(x_hat, P, x_true):
     ne = n - 1
     N = (n - 15) // 3
     full = P.shape[1] == n
+    mapped = full or attitude
     out = np.full((B, 8), np.nan)
     pd = np.zeros(B, np.bool_)
     Tm = np.empty((ne, n))
+    Sa = np.empty((n, ne))
+    Mi = np.empty((ne, ne))
+    e0 = np.zeros(ne)
     TP = np.empty((ne, n))
     Pa = np.empty((ne, ne))
     Lf = np.empty((n, n))
@@ -267,26 +279,34 @@ def nees_batch(x_hat, P, x_true):
                     ok = False
         if not ok:
             continue
-        if full:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
+        if mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
             _error_map(x_hat[t], Tm)
-            np.dot(Tm, P[t], TP)  # BLAS gemm
-            np.dot(TP, Tm.T, Pa)
+            if full:
+                np.dot(Tm, P[t], TP)  # BLAS gemm
+                np.dot(TP, Tm.T, Pa)
+            else:  # M^-1 = T_aligned S_attitude
+                _att._chart_jacobian(x_hat[t], e0, Sa)
+                np.dot(Tm, Sa, Mi)
+                np.dot(Mi, P[t], C)
+                np.dot(C, Mi.T, Pa)
             _mirror_lower(Pa)
             _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq,
                  tmp, v3)  # fmt: skip
-            pd[t] = _cholesky(P[t], Lf)
+            pd[t] = _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
                          R, dq, tmp, v3)  # fmt: skip
     return out, pd
 
 
-def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> dict[str, np.ndarray]:
-    """``core.aligned.nees_report`` on the compiled kernel (same keys, same values to round-off)."""
-    return nees_and_pd(x_hat, P, x_true)[0]
+def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray, attitude: bool = False) -> dict[str, np.ndarray]:
+    """``core.aligned.nees_report`` on the compiled kernel (same keys, same values to round-off); ``attitude``:
+    ``P`` (``B, n-1, n-1``) is the attitude error state's (``mc.trial.aligned_covariance``)."""
+    return nees_and_pd(x_hat, P, x_true, attitude)[0]
 
 
-def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray,
+                attitude: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:  # fmt: skip
     """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
     def writable(a):  # one Numba signature: a read-only view (broadcast_to) would be a second compile and load
         a = np.asarray(a)
@@ -295,5 +315,5 @@ def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray) -> tuple[d
         return np.array(a, dtype=float, order="C")
 
     x_hat = writable(x_hat)
-    out, pd = nees_batch(x_hat, writable(P), writable(np.broadcast_to(x_true, x_hat.shape)))
+    out, pd = nees_batch(x_hat, writable(P), writable(np.broadcast_to(x_true, x_hat.shape)), bool(attitude))
     return {k: out[:, j] for j, k in enumerate(KEYS)}, pd

@@ -15,7 +15,9 @@ Both kernels take the filter's ``chart``: 0, the full state (``filters.relnav``:
 quaternion renormalized); 1, the aligned error state (``filters.mekf`` with
 ``core.aligned``: prior ``e = 0`` with the error-state ``P``, ``h(x- [+] e)``, the row-sparse
 ``H_e`` of ``core.kernels.aligned`` whose virtual columns are served by the point sums
-appended to ``P`` or ``L`` (``_with_virtual``), reset ``x+ = x- [+] e+``).
+appended to ``P`` or ``L`` (``_with_virtual``), reset ``x+ = x- [+] e+``); 2, the attitude
+error state (``filters.mekf`` with ``core.errorstate``: the same, with the row-sparse ``H_e`` of
+``core.kernels.attitude`` and no virtual columns).
 
 A measurement row with ``mask = False`` (a feature dropped by the tracker or rejected by
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
@@ -32,6 +34,7 @@ import math
 import numpy as np
 from numba import njit, types
 
+from . import attitude as _att
 from .aligned import _chart, _measure_aligned, augment
 from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
 
@@ -152,37 +155,44 @@ def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd
     """``h`` and the row-sparse ``H`` of one trial at ``x- [+] e`` in the filter's coordinates.
 
     ``chart`` 0: the full state, ``xt = x- + e``, ``H`` of ``model._measure_one``; 1: the aligned
-    error state, ``xt = aligned.chart(x-, e)``, ``H_e`` of ``aligned._measure_aligned``.
+    error state, ``xt = aligned.chart(x-, e)``, ``H_e`` of ``aligned._measure_aligned``; 2: the
+    attitude error state, ``xt = errorstate.chart(x-, e)``, ``H_e`` of ``attitude._measure_attitude``.
     """
     if chart == 0:
         for i in range(xp.shape[0]):
             xt[i] = xp[i] + e[i]
         _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
-    else:
+    elif chart == 1:
         _measure_aligned(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt,
                          D, dD)  # fmt: skip
+    else:
+        _att._measure_attitude(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval,
+                               xt, D, dD)  # fmt: skip
 
 
 @njit(**_JIT)
 def _reset(chart, xp, e, out):
-    """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), or ``aligned.chart``."""
+    """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), ``aligned.chart`` or
+    ``errorstate.chart``."""
     if chart == 0:
         for i in range(xp.shape[0]):
             out[i] = xp[i] + e[i]
         _normalize_q(out)
-    else:
+    elif chart == 1:
         _chart(xp, e, out, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    else:
+        _att._chart(xp, e, out)
 
 
 @njit(**_JIT)
 def _with_virtual(chart, M, Maug):
     """``M`` with, in the aligned chart, the rows of the virtual columns appended (``aligned.augment``)."""
-    if chart == 0:
+    if chart == 1:
+        augment(M, Maug)
+    else:
         for i in range(M.shape[0]):
             for j in range(M.shape[1]):
                 Maug[i, j] = M[i, j]
-    else:
-        augment(M, Maug)
 
 
 @njit(**_JIT)
@@ -191,8 +201,8 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
 
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
     of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
-    ``x+ = x [+] e+``). Evaluated as one Gauss-Newton step of ``iekf_update_batch`` from the
-    prior (whitened, ``P = L L^T``, ``Hw = R^-1/2 H L``, ``A = I + Hw^T Hw``): by the matrix
+    ``x+ = x [+] e+``); 2: the same in the attitude error state. Evaluated as one Gauss-Newton
+    step of ``iekf_update_batch`` from the prior (whitened, ``P = L L^T``, ``Hw = R^-1/2 H L``, ``A = I + Hw^T Hw``): by the matrix
     inversion lemma ``L A^-1 Hw^T R^-1/2 = P H^T S^-1 = K``, ``L A^-1 L^T = P - K S K^T`` (the
     Joseph form of ``kalman.ekf_update`` for its optimal gain) and ``nu^T S^-1 nu = |rw|^2 -
     g^T A^-1 g``: the same numbers to round-off, with an ``n x n`` system instead of the
@@ -342,8 +352,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     """Gauss-Newton IEKF in whitened coordinates ``x = x- [+] L z`` (``kalman.iekf_update``), per trial.
 
     ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
-    of the aligned error state, as ``mekf.update``); ``control``: 0 none, 1 line search;
-    ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
+    of the aligned error state, as ``mekf.update``; 2: ``errorstate.chart(x-, L z)``, the
+    attitude error state's); ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis,
+    1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
     iterations, converged, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
     B, nx = x.shape

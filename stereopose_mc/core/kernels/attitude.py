@@ -1,0 +1,211 @@
+"""Compiled (Numba) twins of ``core.errorstate``: the attitude error state (the multiplicative EKF's chart).
+
+The numpy functions are the reference (their docstrings give the equations); here, one
+trial at a time, float64, ``nogil``, ``cache=True``. The error state is
+``eps = [d rho, d rho_dot, d omega, a, d P_1 .. d P_N, d k]`` (``n - 1``), additive on every
+block but the attitude, where ``q = dq(a) (x) q_ref`` with ``dq(a) = [1, a/2] / |[1, a/2]|``:
+
+- ``chart_batch``, ``chart_jacobian_batch`` (``S = dx/deps`` at any ``eps``: the identity
+  with the column shift past the quaternion, and ``R(q_ref) d dq/d a`` on the quaternion
+  rows), ``error_map_batch`` (``T = deps/dx`` at ``x_ref``: the same shift, and
+  ``Xi = 2 [R(q_ref^*)]_vec`` on the attitude rows);
+- ``measure_batch``: ``h(x_ref [+] eps)`` and the row-sparse ``H_eps = H S``. ``S`` only mixes the
+  4 quaternion columns of ``H`` into the 3 attitude columns, so a feature's row keeps its 16
+  non-zeros but one (``rho, rho_dot, omega``, ``a``, its point: 15) and a pseudo row its 9 but
+  one (``omega``, ``a``, ``k``: 8), in the ``NNZ = 16`` layout of ``model.measure_batch`` that
+  ``core.kernels.update`` runs the EKF and the IEKF on (``measurement_columns``).
+
+The error-state covariance predict of this chart is ``aligned.predict_covariance_batch``
+with ``chart = 2`` (the same ``Phi_e = T(x-) Phi S(x+)`` with this module's ``S`` and ``T``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .model import NNZ, _measure_one, row_columns
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+ATT = 9  # first column of the attitude error ``a`` (and of the quaternion in the state)
+
+
+@njit(**_JIT)
+def _small_quaternion(d, dq):
+    """``dq(d) = [1, d/2] / |[1, d/2]|`` (``errorstate.small_quaternion``)."""
+    u1, u2, u3 = 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
+    s = math.sqrt(1.0 + u1 * u1 + u2 * u2 + u3 * u3)
+    dq[0], dq[1], dq[2], dq[3] = 1.0 / s, u1 / s, u2 / s, u3 / s
+
+
+@njit(**_JIT)
+def _small_quaternion_jacobian(d, Sq):
+    """``d dq / d d`` (4 x 3): ``(I - p p^T) [0; I/2] / |u|`` (``errorstate.small_quaternion_jacobian``)."""
+    u = np.empty(4)
+    u[0], u[1], u[2], u[3] = 1.0, 0.5 * d[0], 0.5 * d[1], 0.5 * d[2]
+    s = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2] + u[3] * u[3])
+    for a in range(4):
+        for j in range(3):
+            Sq[a, j] = ((0.5 if a == j + 1 else 0.0) - (u[a] / s) * (u[j + 1] / s) * 0.5) / s
+
+
+@njit(**_JIT)
+def _right_times(r, M, out):
+    """``out = R(r) M`` (``M 4 x 3``), ``R(r) p = p (x) r`` (``errorstate.right_matrix``)."""
+    r0, r1, r2, r3 = r[0], r[1], r[2], r[3]
+    for j in range(3):
+        m0, m1, m2, m3 = M[0, j], M[1, j], M[2, j], M[3, j]
+        out[0, j] = r0 * m0 - r1 * m1 - r2 * m2 - r3 * m3
+        out[1, j] = r1 * m0 + r0 * m1 + r3 * m2 - r2 * m3
+        out[2, j] = r2 * m0 - r3 * m1 + r0 * m2 + r1 * m3
+        out[3, j] = r3 * m0 + r2 * m1 - r1 * m2 + r0 * m3
+
+
+@njit(**_JIT)
+def _chart(xr, e, out):
+    """``out = x_ref [+] eps`` (``errorstate.chart``): additive, ``q = dq(a) (x) q_ref``."""
+    n = xr.shape[0]
+    for i in range(9):
+        out[i] = xr[i] + e[i]
+    for i in range(13, n):
+        out[i] = xr[i] + e[i - 1]
+    dq = np.empty(4)
+    _small_quaternion(e[9:12], dq)
+    p0, p1, p2, p3 = dq[0], dq[1], dq[2], dq[3]
+    r0, r1, r2, r3 = xr[9], xr[10], xr[11], xr[12]
+    out[9] = p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3
+    out[10] = p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2
+    out[11] = p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1
+    out[12] = p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0
+
+
+@njit(**_JIT)
+def chart_batch(x_ref, e):
+    """``x_ref [+] eps`` of every trial, ``(B, n)`` (``errorstate.chart``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n))
+    for b in range(B):
+        _chart(x_ref[b], e[b], out[b])
+    return out
+
+
+@njit(**_JIT)
+def _chart_jacobian(xr, e, S):
+    """``S = d (x_ref [+] eps) / d eps`` (``n x n-1``, ``errorstate.chart_jacobian``), written in full."""
+    n = xr.shape[0]
+    S[:, :] = 0.0
+    for i in range(9):
+        S[i, i] = 1.0
+    for i in range(13, n):
+        S[i, i - 1] = 1.0
+    Sq = np.empty((4, 3))
+    _small_quaternion_jacobian(e[9:12], Sq)
+    _right_times(xr[9:13], Sq, S[9:13, 9:12])
+
+
+@njit(**_JIT)
+def chart_jacobian_batch(x_ref, e):
+    """``S (B, n, n-1)`` of every trial (``errorstate.chart_jacobian``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n, n - 1))
+    for b in range(B):
+        _chart_jacobian(x_ref[b], e[b], out[b])
+    return out
+
+
+@njit(**_JIT)
+def _error_map(xr, T):
+    """``T = d eps / d x`` at ``x_ref`` (``n-1 x n``, ``errorstate.error_map``), written in full."""
+    n = xr.shape[0]
+    T[:, :] = 0.0
+    for i in range(9):
+        T[i, i] = 1.0
+    for i in range(13, n):
+        T[i - 1, i] = 1.0
+    q = xr[9:13]
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
+    # Xi = 2 [R(q^*)]_{1:4, :}, q^* = [q0, -q1, -q2, -q3]
+    T[9, 9], T[9, 10], T[9, 11], T[9, 12] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
+    T[10, 9], T[10, 10], T[10, 11], T[10, 12] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
+    T[11, 9], T[11, 10], T[11, 11], T[11, 12] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
+
+
+@njit(**_JIT)
+def error_map_batch(x_ref):
+    """``T (B, n-1, n)`` of every trial (``errorstate.error_map``)."""
+    B, n = x_ref.shape
+    out = np.empty((B, n - 1, n))
+    for b in range(B):
+        _error_map(x_ref[b], out[b])
+    return out
+
+
+# --- measurement ----------------------------------------------------------------
+
+
+@njit(**_JIT)
+def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D,
+                      dD):  # fmt: skip
+    """``h(x_ref [+] eps)`` and the row-sparse ``H_eps`` of one trial (module docstring); ``xt``: the charted state.
+
+    From ``model._measure_one``'s full-state rows at ``xt``: the quaternion columns ``H_q`` become
+    the attitude columns ``H_q R(q_ref) d dq/d a``; the point's columns (and ``k``'s) move one to
+    the left.
+    """
+    _chart(xr, e, xt)
+    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    if not compute_jac:
+        return
+    Sq = np.empty((4, 3))
+    RSq = np.empty((4, 3))
+    _small_quaternion_jacobian(e[9:12], Sq)
+    _right_times(xr[9:13], Sq, RSq)
+    C = 9 if disparity else 8
+    nf = vis.shape[0] * C
+    h = np.empty(NNZ)
+    for r in range(nf):  # [rho, rho_dot, omega (9), q (4), P_i (3)] -> [.. (9), a (3), P_i (3), pad]
+        for k in range(NNZ):
+            h[k] = Hval[r, k]
+        for j in range(3):
+            Hval[r, 9 + j] = h[9] * RSq[0, j] + h[10] * RSq[1, j] + h[11] * RSq[2, j] + h[12] * RSq[3, j]
+            Hval[r, 12 + j] = h[13 + j]
+        Hval[r, 15] = 0.0
+    if pseudo:  # [omega (3), q (4), k (2)] -> [omega, a (3), k]
+        for r in range(nf, nf + 3):
+            for k in range(NNZ):
+                h[k] = Hval[r, k]
+            for j in range(3):
+                Hval[r, 3 + j] = h[3] * RSq[0, j] + h[4] * RSq[1, j] + h[5] * RSq[2, j] + h[6] * RSq[3, j]
+            Hval[r, 6], Hval[r, 7] = h[7], h[8]
+            for k in range(8, NNZ):
+                Hval[r, k] = 0.0
+
+
+@njit(**_JIT)
+def measurement_columns(ne, vis, channels, pseudo):
+    """Column indices ``(m, 16)`` of the row-sparse ``H_eps``: a feature's rows see ``rho, rho_dot, omega, a``
+    and its point, the pseudo rows ``omega, a, k``."""
+    k = np.array([ne - 2, ne - 1])
+    return row_columns(vis, channels, np.arange(12), 12, np.arange(0), np.concatenate((np.arange(6, 12), k)), pseudo)
+
+
+@njit(**_JIT)
+def measure_batch(x_ref, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
+    """``h(x_ref [+] eps) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_eps``
+    (``measurement_columns``)."""
+    B, n = x_ref.shape
+    C = 9 if disparity else 8
+    m = vis.shape[0] * C + (3 if pseudo else 0)
+    hx = np.empty((B, m))
+    Hval = np.zeros((B, m, NNZ))
+    xt = np.empty(n)
+    D = np.empty((3, 3))
+    dD = np.empty((4, 3, 3))
+    for b in range(B):
+        _measure_attitude(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac,
+                          hx[b], Hval[b], xt, D, dD)  # fmt: skip
+    return hx, Hval
