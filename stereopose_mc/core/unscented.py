@@ -69,6 +69,12 @@ def _flat(a: Array) -> Array:
     return a.reshape((-1,) + a.shape[2:])
 
 
+def weighted_outer(W: Array, a: Array, b: Array) -> Array:
+    """``sum_k W_k a_k b_k^T`` (``(B, n, m)`` from ``a (B, K, n)``, ``b (B, K, m)``) as ``(a W)^T b``: one batched
+    BLAS product per trial (a three-operand ``einsum`` loops in C without BLAS, ~20x slower here)."""
+    return np.swapaxes(a * W[:, None], -1, -2) @ b
+
+
 def predict(x: Array, P: Array, f: Callable, Q: Array, alpha: float, beta: float, kappa: float,
             chart: Callable = additive_chart, local: Callable = additive_local) -> tuple[Array, Array]:  # fmt: skip
     """``(x-, P-)``; ``f(states (M, .), trial_of_point (M,))`` propagates flattened points."""
@@ -81,7 +87,7 @@ def predict(x: Array, P: Array, f: Callable, Q: Array, alpha: float, beta: float
     dev = local(np.broadcast_to(ref[:, None], chi_f.shape), chi_f)  # (B, 2n+1, n)
     d = np.einsum("k,bki->bi", Wm, dev)
     e = dev - d[:, None]
-    P_pred = np.einsum("k,bki,bkj->bij", Wc, e, e) + Q
+    P_pred = weighted_outer(Wc, e, e) + Q
     return chart(ref, d), 0.5 * (P_pred + np.swapaxes(P_pred, -1, -2))
 
 
@@ -96,10 +102,10 @@ def update(x: Array, P: Array, y: Array, h: Callable, R: Array, alpha: float, be
     Y = h(_flat(chi), idx).reshape(B, 2 * n + 1, -1)
     y_bar = np.einsum("k,bkm->bm", Wm, Y)
     dy = Y - y_bar[:, None]
-    S = np.einsum("k,bki,bkj->bij", Wc, dy, dy)
+    S = weighted_outer(Wc, dy, dy)
     m = S.shape[-1]
     S[..., np.arange(m), np.arange(m)] += np.broadcast_to(R, (B, m))
-    C = np.einsum("k,bki,bkj->bij", Wc, d, dy)  # (B, n, m); the centre offset is 0
+    C = weighted_outer(Wc, d, dy)  # (B, n, m); the centre offset is 0
     nu = y - y_bar
     Z = np.linalg.solve(S, np.concatenate([np.swapaxes(C, -1, -2), nu[..., None]], axis=-1))
     K = np.swapaxes(Z[..., :-1], -1, -2)

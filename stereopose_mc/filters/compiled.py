@@ -20,7 +20,8 @@ multiplicative EKF; ``core.kernels.attitude``): ``P- = Phi_e P Phi_e^T + T Q T^T
 ``Phi_e = T(x-) Phi S(x+)``, and the updates on the row-sparse ``H_e = H S`` with the reset
 ``x+ = x- [+] e+`` (the EKF's iterated first update included). The UKF (``filters/ukf.py``)
 propagates and measures its sigma points with the compiled RK4 and ``h`` (``_propagator``,
-``_measurer``); its unscented algebra stays numpy.
+``_measurer``) and maps them with the compiled charts (``_charts``: ``x [+] e`` and its inverse);
+its unscented algebra stays numpy (batched BLAS products, ``core.unscented``).
 """
 
 from __future__ import annotations
@@ -103,8 +104,8 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
     """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
-    if fs.kind == "ukf":  # its sigma points through the compiled RK4
-        return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup))
+    if fs.kind == "ukf":  # its sigma points through the compiled RK4 and chart
+        return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup), charts=_charts(fs))
     chart = chart_code(fs)
     if chart is None:  # no kernels for this filter type
         return estimators.predict(x, P, t, fs, setup)
@@ -133,6 +134,27 @@ def _propagator(t: float, fs: FilterSetup, setup: Setup):
         return km.propagate_batch(_writable(states), r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
 
     return propagate
+
+
+def _batched(kernel):
+    """``kernel(a (B, k), b (B, l))`` over any common leading axes of ``a`` and ``b`` (broadcast), like the numpy
+    charts: flattened to one batch axis, contiguous, and shaped back."""
+
+    def f(a: Array, b: Array) -> Array:
+        lead = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+        a2 = np.ascontiguousarray(np.broadcast_to(a, lead + a.shape[-1:]), dtype=float).reshape(-1, a.shape[-1])
+        b2 = np.ascontiguousarray(np.broadcast_to(b, lead + b.shape[-1:]), dtype=float).reshape(-1, b.shape[-1])
+        out = kernel(a2, b2)
+        return out.reshape(lead + out.shape[-1:])
+
+    return f
+
+
+def _charts(fs: FilterSetup) -> tuple:
+    """``(chart, local)`` of a UKF's error state on the compiled kernels (``aligned`` or ``attitude``), as
+    ``mekf.chart_of(fs)``'s numpy ones."""
+    k = ka if fs.error_state == "aligned" else katt  # mekf.chart_of: the attitude chart for anything else
+    return _batched(k.chart_batch), _batched(k.local_batch)
 
 
 def _measurer(setup: Setup, step: relnav.StepMeasurement):
@@ -177,8 +199,8 @@ def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> di
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
-    if fs.kind == "ukf":  # its sigma points through the compiled h (the iterated first update: numpy's)
-        return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step))
+    if fs.kind == "ukf":  # its sigma points through the compiled h and chart (the iterated first update: numpy's)
+        return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step), charts=_charts(fs))
     hit = _CONSTANTS.get(("supported", id(fs)))
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))

@@ -21,12 +21,13 @@ from . import gating, mekf, relnav
 from .mekf import error_process_noise
 
 
-def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None):
+def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None, charts=None):
     """``(x-, P-)`` with ``P`` the error-state covariance.
 
     ``propagate(states (M, n))``: the RK4 of the step with the quaternion renormalized, for
     any number of states (default: ``dynamics.propagate``; ``filters.compiled`` passes its
-    compiled twin).
+    compiled twin). ``charts``: ``(chart, local)`` of the error state, batched over any leading
+    axes (default: those of ``mekf.chart_of(fs)``; ``filters.compiled`` passes compiled twins).
     """
     if propagate is None:
 
@@ -39,11 +40,13 @@ def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None):
     # Q is mapped at the propagated centre point (the mean's chart differs from it by the mean increment)
     x_c = propagate(x)
     ch = mekf.chart_of(fs)
+    chart, local = charts or (ch.chart, ch.local)
     return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag, ch), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
-                      chart=ch.chart, local=ch.local)  # fmt: skip
+                      chart=chart, local=local)  # fmt: skip
 
 
-def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup, measure_h=None) -> kf.Update:
+def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup, measure_h=None,
+           charts=None) -> kf.Update:  # fmt: skip
     """The unscented update (or, at an iterated first update, the error-state filter's iterated one).
 
     The features the tracker did not deliver (``step.feature_mask``) are taken out of the
@@ -51,7 +54,8 @@ def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Set
 
     ``measure_h(states (M, n), trials (M,))``: the stacked ``h`` of the step at each state, with
     the pseudo rows of the state's trial (index into the step's batch); default
-    ``relnav.measurement_model``, ``filters.compiled`` passes its compiled twin.
+    ``relnav.measurement_model``, ``filters.compiled`` passes its compiled twin; ``charts`` as in
+    ``predict`` (only the chart is used).
     """
     if relnav.iterated_at(fs, setup, step):  # first_update: iterated, the error-state filter's iterated update
         return mekf.update(x, P, step, rows, fs, setup)
@@ -76,6 +80,6 @@ def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Set
     def h(states, idx):
         return model(states, rows[idx], False)[0]
 
-    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
-                                      chart=mekf.chart_of(fs).chart)
+    chart = charts[0] if charts else mekf.chart_of(fs).chart
+    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa, chart=chart)
     return relnav.GatedUpdate(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool), np.zeros(B, int), used)

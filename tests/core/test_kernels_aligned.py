@@ -45,6 +45,18 @@ def test_chart_jacobian_and_error_map_match_numpy():
     assert np.allclose(T @ ka.chart_jacobian_batch(x, 0 * e), np.eye(ne), rtol=0, atol=1e-12)
 
 
+def test_local_inverts_the_chart_like_numpy():
+    x, e, _ = case()
+    xc = ka.chart_batch(x, e)
+    np.testing.assert_allclose(ka.local_batch(x, xc), e, rtol=0, atol=1e-13)
+    assert rel(ka.local_batch(x, xc), al.local(x, xc)) < 1e-14
+    other = xc.copy()
+    other[:, st.QUAT] *= 0.8  # non-unit quaternions: normalized as numpy's local does
+    ref = x.copy()
+    ref[:, st.QUAT] *= 1.3
+    assert rel(ka.local_batch(ref, other), al.local(ref, other)) < 1e-14
+
+
 def test_chart_jacobian_and_error_map_match_finite_differences():
     x, e, _ = case(B=2)
     S = ka.chart_jacobian_batch(x, e)

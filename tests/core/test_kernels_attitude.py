@@ -55,6 +55,18 @@ def test_chart_jacobian_and_error_map_match_numpy():
     np.testing.assert_array_equal(kt.error_map_batch(x1)[0, 9:12, 9:13], [[0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 2]])
 
 
+def test_local_inverts_the_chart_like_numpy():
+    x, e, _ = case()
+    xc = kt.chart_batch(x, e)
+    np.testing.assert_allclose(kt.local_batch(x, xc), e, rtol=0, atol=1e-14)
+    assert rel(kt.local_batch(x, xc), es.local(x, xc)) < 1e-15
+    scaled = xc.copy()
+    scaled[:, st.QUAT] *= 0.8  # a non-unit quaternion on either side: normalized as numpy's local does
+    ref = x.copy()
+    ref[:, st.QUAT] *= 1.3
+    assert rel(kt.local_batch(ref, scaled), es.local(ref, scaled)) < 1e-15
+
+
 def test_chart_jacobian_and_error_map_match_finite_differences():
     x, e, _ = case(B=2)
     S = kt.chart_jacobian_batch(x, e)

@@ -134,3 +134,18 @@ def test_ekf_mekf_ukf_agree_near_linearity():
         # error-state covariance (n - 1 = 29), every NEES reported in the attitude chart: 29 dof
         assert 10 < np.mean(r.nees[:, 1:]) < 60, r.label
         assert r.x_final.shape == ekf.x_final.shape and r.P_final.shape[-1] == ekf.P_final.shape[-1] - 1
+
+
+def test_weighted_outer_is_the_weighted_sum_of_outer_products():
+    """``weighted_outer(W, a, b) = sum_k W_k a_k b_k^T`` per trial, negative weights included (``Wc_0 < 0`` for a
+    small ``alpha``): against the sum written out, and a hand value."""
+    W = np.array([-3.0, 0.5, 0.25])
+    a = RNG.standard_normal((4, 3, 5))
+    b = RNG.standard_normal((4, 3, 2))
+    ref = np.zeros((4, 5, 2))
+    for t in range(4):
+        for k in range(3):
+            ref[t] += W[k] * np.outer(a[t, k], b[t, k])
+    np.testing.assert_allclose(ut.weighted_outer(W, a, b), ref, rtol=1e-14, atol=1e-14)
+    one = ut.weighted_outer(np.array([2.0, -1.0]), np.array([[[1.0, 2.0], [3.0, 0.0]]]), np.array([[[1.0], [1.0]]]))
+    np.testing.assert_array_equal(one, [[[2.0 - 3.0], [4.0]]])

@@ -143,6 +143,75 @@ def chart_batch(x_ref, e):
 
 
 @njit(**_JIT)
+def _qmul(p, q, out):
+    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
+    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
+
+
+@njit(**_JIT)
+def _local(xh, xt, e, D, Dt, R, dq, tmp, v3):
+    """``e = local(x_ref, x)`` (``aligned.local``) with ``xh`` the reference and ``xt`` the state; returns
+    ``(|q_ref|, |q|)`` and leaves ``D = D(q_ref)``, ``Dt = D(q)``, ``R = D(dq)`` and, in the rows of ``v3``,
+    ``P_bar_ref, P_bar, v_ref = D P_bar_ref, v, [omega_ref x] v_ref, [omega x] v`` (``core.kernels.consistency``
+    reads ``D`` and ``v_ref``)."""
+    N = _n_points(xh.shape[0])
+    nh = math.sqrt(xh[9] ** 2 + xh[10] ** 2 + xh[11] ** 2 + xh[12] ** 2)
+    nt = math.sqrt(xt[9] ** 2 + xt[10] ** 2 + xt[11] ** 2 + xt[12] ** 2)
+    tmp[0], tmp[1], tmp[2], tmp[3] = xh[9] / nh, -xh[10] / nh, -xh[11] / nh, -xh[12] / nh
+    _qmul(tmp, xt[9:13], dq)
+    for j in range(4):
+        dq[j] /= nt
+    for j in range(3):
+        e[9 + j] = 2.0 * dq[1 + j] / dq[0]
+    _dcm(dq, R)
+    _dcm(xh[9:13], D)
+    _dcm(xt[9:13], Dt)
+    pbh, pbt, vh, vt, ch, ct = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
+    for r in range(3):
+        pbh[r] = 0.0
+        pbt[r] = 0.0
+        vh[r] = 0.0
+        vt[r] = 0.0
+    for i in range(N):
+        for r in range(3):
+            pbh[r] += xh[13 + 3 * i + r] / N
+            pbt[r] += xt[13 + 3 * i + r] / N
+            s = 0.0
+            for c in range(3):
+                s += R[r, c] * xt[13 + 3 * i + c]
+            e[12 + 3 * i + r] = s - xh[13 + 3 * i + r]
+    for r in range(3):
+        for c in range(3):
+            vh[r] += D[r, c] * pbh[c]
+            vt[r] += Dt[r, c] * pbt[c]
+    for r in range(3):
+        e[6 + r] = xt[6 + r] - xh[6 + r]
+        e[r] = (xt[r] + vt[r]) - (xh[r] + vh[r])
+    wh, wt = xh[6:9], xt[6:9]
+    ch[0], ch[1], ch[2] = wh[1] * vh[2] - wh[2] * vh[1], wh[2] * vh[0] - wh[0] * vh[2], wh[0] * vh[1] - wh[1] * vh[0]
+    ct[0], ct[1], ct[2] = wt[1] * vt[2] - wt[2] * vt[1], wt[2] * vt[0] - wt[0] * vt[2], wt[0] * vt[1] - wt[1] * vt[0]
+    for r in range(3):
+        e[3 + r] = (xt[3 + r] + ct[r]) - (xh[3 + r] + ch[r])
+    for j in range(2):
+        e[12 + 3 * N + j] = xt[13 + 3 * N + j] - xh[13 + 3 * N + j]
+    return nh, nt
+
+
+@njit(**_JIT)
+def local_batch(x_ref, x):
+    """``e = local(x_ref, x)`` of every trial, ``(B, n-1)`` (``aligned.local``)."""
+    B, n = x.shape
+    out = np.empty((B, n - 1))
+    D, Dt, R = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    dq, tmp, v3 = np.empty(4), np.empty(4), np.empty((6, 3))
+    for b in range(B):
+        _local(x_ref[b], x[b], out[b], D, Dt, R, dq, tmp, v3)
+    return out
+
+
+@njit(**_JIT)
 def _chart_jacobian(xr, e, S):
     """``S = d (x_ref [+] e) / d e`` (``n x n-1``, ``aligned.chart_jacobian``), written in full."""
     n = xr.shape[0]

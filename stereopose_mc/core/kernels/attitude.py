@@ -5,7 +5,7 @@ trial at a time, float64, ``nogil``, ``cache=True``. The error state is
 ``eps = [d rho, d rho_dot, d omega, a, d P_1 .. d P_N, d k]`` (``n - 1``), additive on every
 block but the attitude, where ``q = dq(a) (x) q_ref`` with ``dq(a) = [1, a/2] / |[1, a/2]|``:
 
-- ``chart_batch``, ``chart_jacobian_batch`` (``S = dx/deps`` at any ``eps``: the identity
+- ``chart_batch``, ``local_batch`` (its inverse), ``chart_jacobian_batch`` (``S = dx/deps`` at any ``eps``: the identity
   with the column shift past the quaternion, and ``R(q_ref) d dq/d a`` on the quaternion
   rows), ``error_map_batch`` (``T = deps/dx`` at ``x_ref``: the same shift, and
   ``Xi = 2 [R(q_ref^*)]_vec`` on the attitude rows);
@@ -89,6 +89,35 @@ def chart_batch(x_ref, e):
     out = np.empty((B, n))
     for b in range(B):
         _chart(x_ref[b], e[b], out[b])
+    return out
+
+
+@njit(**_JIT)
+def _local(xr, x, e):
+    """``eps`` with ``x = x_ref [+] eps`` (``errorstate.local``): ``a = 2 vec(dq) / dq_0``,
+    ``dq = q (x) normalize(q_ref)^* / |q|``; the difference elsewhere."""
+    n = x.shape[0]
+    for i in range(9):
+        e[i] = x[i] - xr[i]
+    for i in range(13, n):
+        e[i - 1] = x[i] - xr[i]
+    nr = math.sqrt(xr[9] * xr[9] + xr[10] * xr[10] + xr[11] * xr[11] + xr[12] * xr[12])
+    nx = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
+    r0, r1, r2, r3 = xr[9] / nr, -(xr[10] / nr), -(xr[11] / nr), -(xr[12] / nr)
+    p0, p1, p2, p3 = x[9], x[10], x[11], x[12]
+    d0 = (p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3) / nx
+    e[9] = 2.0 * ((p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2) / nx) / d0
+    e[10] = 2.0 * ((p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1) / nx) / d0
+    e[11] = 2.0 * ((p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0) / nx) / d0
+
+
+@njit(**_JIT)
+def local_batch(x_ref, x):
+    """``eps = local(x_ref, x)`` of every trial, ``(B, n-1)`` (``errorstate.local``)."""
+    B, n = x.shape
+    out = np.empty((B, n - 1))
+    for b in range(B):
+        _local(x_ref[b], x[b], out[b])
     return out
 
 

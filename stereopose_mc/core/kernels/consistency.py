@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
-from .aligned import _error_map
+from .aligned import _error_map, _local, _qmul
 from .model import _dcm, _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
 
@@ -92,57 +92,13 @@ def _put(cnt, cols, vals, r, c, v):
 
 
 @njit(**_JIT)
-def _qmul(p, q, out):
-    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
-    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
-    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
-    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
-
-
-@njit(**_JIT)
 def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3):
     n = xh.shape[0]
     ne = n - 1
-    # --- aligned error at the estimate: e = local_aligned(x_hat, x_true)
-    nh = math.sqrt(xh[9] ** 2 + xh[10] ** 2 + xh[11] ** 2 + xh[12] ** 2)
-    nt = math.sqrt(xt[9] ** 2 + xt[10] ** 2 + xt[11] ** 2 + xt[12] ** 2)
-    tmp[0], tmp[1], tmp[2], tmp[3] = xh[9] / nh, -xh[10] / nh, -xh[11] / nh, -xh[12] / nh
-    _qmul(tmp, xt[9:13], dq)
-    for j in range(4):
-        dq[j] /= nt
-    for j in range(3):
-        e[9 + j] = 2.0 * dq[1 + j] / dq[0]
-    _dcm(dq, R)
-    _dcm(xh[9:13], D)
-    _dcm(xt[9:13], Dt)
-    pbh, pbt, vh, vt, ch, ct = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
-    for r in range(3):
-        pbh[r] = 0.0
-        pbt[r] = 0.0
-        vh[r] = 0.0
-        vt[r] = 0.0
-    for i in range(N):
-        for r in range(3):
-            pbh[r] += xh[13 + 3 * i + r] / N
-            pbt[r] += xt[13 + 3 * i + r] / N
-            s = 0.0
-            for c in range(3):
-                s += R[r, c] * xt[13 + 3 * i + c]
-            e[12 + 3 * i + r] = s - xh[13 + 3 * i + r]
-    for r in range(3):
-        for c in range(3):
-            vh[r] += D[r, c] * pbh[c]
-            vt[r] += Dt[r, c] * pbt[c]
-    for r in range(3):
-        e[6 + r] = xt[6 + r] - xh[6 + r]
-        e[r] = (xt[r] + vt[r]) - (xh[r] + vh[r])
-    wh, wt = xh[6:9], xt[6:9]
-    ch[0], ch[1], ch[2] = wh[1] * vh[2] - wh[2] * vh[1], wh[2] * vh[0] - wh[0] * vh[2], wh[0] * vh[1] - wh[1] * vh[0]
-    ct[0], ct[1], ct[2] = wt[1] * vt[2] - wt[2] * vt[1], wt[2] * vt[0] - wt[0] * vt[2], wt[0] * vt[1] - wt[1] * vt[0]
-    for r in range(3):
-        e[3 + r] = (xt[3 + r] + ct[r]) - (xh[3 + r] + ch[r])
-    for j in range(2):
-        e[12 + 3 * N + j] = xt[13 + 3 * N + j] - xh[13 + 3 * N + j]
+    # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
+    nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
+    vh = v3[2]
+    wh = xh[6:9]
     # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too)
     if not _cholesky(P, L):
         return False
