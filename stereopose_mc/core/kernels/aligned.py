@@ -467,7 +467,6 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
                 Hval[r, k] = 0.0
 
 
-@njit(**_JIT)
 def measurement_columns(ne, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H_e``: a feature's rows see ``e_c, e_cdot, e_omega``,
     its point and the virtual point-sum columns ``ne, ne+1, ne+2``; the pseudo rows ``e_omega, delta, e_k``."""

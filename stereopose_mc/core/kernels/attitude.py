@@ -214,7 +214,6 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
                 Hval[r, k] = 0.0
 
 
-@njit(**_JIT)
 def measurement_columns(ne, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H_eps``: a feature's rows see ``rho, rho_dot, omega, a``
     and its point, the pseudo rows ``omega, a, k``."""

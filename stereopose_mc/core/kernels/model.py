@@ -583,27 +583,25 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
         Hval[i, 8] = -dgdk[i, 1]
 
 
-@njit(**_JIT)
 def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
     """Column indices ``(m, 16)`` of a row-sparse ``H``: each row of visible feature ``f`` holds the
     columns ``before``, then its point's 3 (``point0 + 3 vis[f]``), then ``after``; the 3 pseudo rows
-    hold ``pseudo_cols``; the rest is padding (column 0, value 0)."""
-    nv = vis.shape[0]
-    m = nv * channels + (3 if pseudo else 0)
-    cols = np.zeros((m, NNZ), np.int64)
-    nb = before.shape[0]
-    for row in range(nv * channels):
-        p0 = point0 + 3 * vis[row // channels]
-        cols[row, :nb] = before
-        for j in range(3):
-            cols[row, nb + j] = p0 + j
-        cols[row, nb + 3 : nb + 3 + after.shape[0]] = after
-    for i in range(3 if pseudo else 0):
-        cols[nv * channels + i, : pseudo_cols.shape[0]] = pseudo_cols
+    hold ``pseudo_cols``; the rest is padding (column 0, value 0).
+
+    Plain numpy (called from Python once per visibility pattern: a Numba kernel here only cost
+    its load at start-up)."""
+    vis = np.asarray(vis, dtype=np.int64)
+    nf = vis.size * channels
+    cols = np.zeros((nf + (3 if pseudo else 0), NNZ), np.int64)
+    nb, na = len(before), len(after)
+    cols[:nf, :nb] = before
+    cols[:nf, nb : nb + 3] = point0 + 3 * np.repeat(vis, channels)[:, None] + np.arange(3)
+    cols[:nf, nb + 3 : nb + 3 + na] = after
+    if pseudo:
+        cols[nf:, : len(pseudo_cols)] = pseudo_cols
     return cols
 
 
-@njit(**_JIT)
 def measurement_columns(n, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``: a feature's rows see
     ``rho, rho_dot, omega, q`` and its point, the pseudo rows ``omega, q, k``."""

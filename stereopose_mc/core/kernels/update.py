@@ -195,18 +195,20 @@ def _with_virtual(chart, M, Maug):
                 Maug[i, j] = M[i, j]
 
 
-@njit(**_JIT)
 def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart):
     """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
 
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
     of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
     ``x+ = x [+] e+``); 2: the same in the attitude error state. Evaluated as one Gauss-Newton
-    step of ``iekf_update_batch`` from the prior (whitened, ``P = L L^T``, ``Hw = R^-1/2 H L``, ``A = I + Hw^T Hw``): by the matrix
-    inversion lemma ``L A^-1 Hw^T R^-1/2 = P H^T S^-1 = K``, ``L A^-1 L^T = P - K S K^T`` (the
-    Joseph form of ``kalman.ekf_update`` for its optimal gain) and ``nu^T S^-1 nu = |rw|^2 -
-    g^T A^-1 g``: the same numbers to round-off, with an ``n x n`` system instead of the
-    ``m x m`` one (``m = 8N + 3 > n = 3N + 15``).
+    step of ``iekf_update_batch`` from the prior (whitened, ``P = L L^T``, ``Hw = R^-1/2 H L``,
+    ``A = I + Hw^T Hw``): by the matrix inversion lemma ``L A^-1 Hw^T R^-1/2 = P H^T S^-1 = K``,
+    ``L A^-1 L^T = P - K S K^T`` (the Joseph form of ``kalman.ekf_update`` for its optimal gain)
+    and ``nu^T S^-1 nu = |rw|^2 - g^T A^-1 g``: the same numbers to round-off, with an
+    ``n x n`` system instead of the ``m x m`` one (``m = 8N + 3 > n = 3N + 15``).
+
+    A Python call of the compiled ``iekf_update_batch`` with one plain Gauss-Newton step (not a
+    kernel of its own: that was a second copy of the same machine code to load at start-up).
 
     Returns ``(x+, P+, nu, nis, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
