@@ -218,12 +218,14 @@ def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
 
 
 def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -> tuple:
-    """``(vis, C, m, R (b, m), cols, mask of ones (b, m), zeros (b, 3))`` for this filter, visibility and batch size.
+    """``(vis, C, m, R (b, m), cols, mask of ones (b, m), zeros (b, 3), fixed)`` for this filter, visibility and
+    batch size; ``fixed``: the update's per-trial fields that do not depend on the step when no feature is
+    masked, ``(rejected 0, used nvis, iterations 1, converged True)`` of the EKF update, read-only.
 
     The same at every step where the same features are visible: kept (a few entries per
     run) so that a step does not rebuild them. ``R`` carries the filter's own pseudo-row
     variance (``compiled_update`` builds it per trial when the step brings ``alpha_var``).
-    Shared between steps: the kernels never write their inputs.
+    Shared between steps: the kernels never write their inputs, and ``fixed`` cannot be written.
     """
     key = (id(fs), id(setup), visible.tobytes(), b, ne)
     hit = _CONSTANTS.get(key)
@@ -234,7 +236,10 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     m = vis.size * C + (3 if setup.pseudo else 0)
     R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
     cols = CHART_KERNELS.get(chart_code(fs), km).measurement_columns(ne, vis, C, setup.pseudo)
-    out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)))
+    fixed = (np.zeros(b, int), np.full(b, vis.size, np.int64), np.ones(b, int), np.ones(b, bool))
+    for a in fixed:
+        a.flags.writeable = False
+    out = (vis, C, m, R, cols, np.ones((b, m), bool), np.zeros((b, 3)), fixed)
     if len(_CONSTANTS) > 64:  # a perturbed truth or a pseudo-row warm-up makes a new setup per step: bounded
         _CONSTANTS.clear()
     _CONSTANTS[key] = (fs, setup, out)  # the objects themselves: an id is never reused while they are held
@@ -254,7 +259,8 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     b, ne = P.shape[:2]
     _, nd, ndd = _leader(setup.orbit, float(step.t))
     nd, ndd = float(nd[0]), float(ndd[0])
-    vis, C, m, R, cols, ones, zeros3 = _constants(fs, setup, step.visible, b, ne)
+    vis, C, m, R, cols, ones, zeros3, (rejected, used, one_iteration, converged) = _constants(fs, setup, step.visible,
+                                                                                              b, ne)  # fmt: skip
     nvis = vis.size
     # rows: increasing trial indices into the step's batch (mc.trial's active set); all of them: no gather
     every = rows.size == step.y.shape[0] and rows.size > 0 and rows[0] == 0 and rows[-1] == rows.size - 1
@@ -263,24 +269,20 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, step.alpha_var[rows]), (b, m)))
     alpha = _writable(step.alpha if every else step.alpha[rows]) if setup.pseudo else zeros3
     keep = None if step.feature_mask is None else step.feature_mask[rows]
-    rejected = np.zeros(b, int)
     if fs.gate_probability is not None and nvis:
         from . import gating
 
         hx, H = linearized(x, alpha, vis, setup, nd, ndd, chart, ne)
         d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
         keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
-    if keep is None:
-        used = np.empty(b, np.int64)
-        used.fill(nvis)
-    else:
+    if keep is not None:
         used = keep.sum(axis=-1)
     mask = ones if keep is None else _row_mask(keep, b, m, C)
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
             nd, ndd, cols, chart)  # fmt: skip
     if iterated is None:
         xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
-        its, conv = np.ones(b, int), np.ones(b, bool)
+        its, conv = one_iteration, converged
     else:
         xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
