@@ -204,8 +204,8 @@ def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: Fi
     hit = _CONSTANTS.get(("supported", id(fs)))
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
-    if not hit[2] or (chart_code(fs) == 0 and _iterated(fs, setup, step) is FIRST_ITERATED):
-        return estimators.update(x, P, step, rows, fs, setup)  # LM, full state's first iterated
+    if not hit[2]:
+        return estimators.update(x, P, step, rows, fs, setup)  # Levenberg-Marquardt
     return compiled_update(x, P, step, rows, fs, setup)
 
 
