@@ -21,7 +21,8 @@ multiplicative EKF; ``core.kernels.attitude``): ``P- = Phi_e P Phi_e^T + T Q T^T
 ``x+ = x- [+] e+`` (the EKF's iterated first update included). The UKF (``filters/ukf.py``)
 propagates and measures its sigma points with the compiled RK4 and ``h`` (``_propagator``,
 ``_measurer``) and maps them with the compiled charts (``_charts``: ``x [+] e`` and its inverse);
-its unscented algebra stays numpy (batched BLAS products, ``core.unscented``).
+its unscented algebra stays numpy (batched BLAS products, ``core.unscented``); its iterated first
+update (``first_update: iterated``, the error-state IEKF's) runs the update kernels.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ from ..core.orbit import leader_kinematics
 from . import estimators, relnav, ukf
 
 Array = NDArray[np.float64]
-COMPILED_KINDS = ("ekf", "iekf", "mekf")  # filter types whose predict/update have compiled kernels
+COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")  # filter types with compiled kernels (the UKF: its own path, its
+# iterated first update on the update kernels)
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
 FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
@@ -50,7 +52,7 @@ def chart_code(fs: FilterSetup) -> int | None:
     state, None: no kernels."""
     if fs.kind not in COMPILED_KINDS:
         return None
-    if fs.kind == "mekf":  # always an error state (the attitude chart for anything but "aligned")
+    if fs.kind in ("mekf", "ukf"):  # always an error state (the attitude chart for anything but "aligned")
         return 1 if fs.error_state == "aligned" else 2
     return {"full": 0, "aligned": 1, "attitude": 2}.get(fs.error_state)
 
@@ -199,7 +201,7 @@ def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> di
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
     """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy."""
-    if fs.kind == "ukf":  # its sigma points through the compiled h and chart (the iterated first update: numpy's)
+    if fs.kind == "ukf" and not relnav.iterated_at(fs, setup, step):  # its sigma points through the compiled h, chart
         return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step), charts=_charts(fs))
     hit = _CONSTANTS.get(("supported", id(fs)))
     if hit is None or hit[0] is not fs:
@@ -306,7 +308,8 @@ def _patch(u, bad: Array, v):
 
 def supported(fs: FilterSetup) -> bool:
     """Filters the compiled update covers (others run ``estimators.update``): the EKF, the IEKF and the MEKF in
-    any chart (full state, aligned or attitude error state), their iterated updates with line search or none."""
+    any chart (full state, aligned or attitude error state), their iterated updates with line search or none,
+    and the UKF's iterated first update (its other updates are ``ukf.update`` on the compiled model)."""
     if chart_code(fs) is None:
         return False
     iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)
