@@ -9,9 +9,9 @@ work is done:
   per trial, ``P- = Phi P Phi^T + Q`` block-structured (``core.kernels.model``);
 - measurement: ``h`` and the row-sparse ``H`` per feature in one compiled pass; the
   update fused with the measurement model, per trial, on the row-sparse ``H``
-  (``core.kernels.update``): EKF, and IEKF with line search or plain Gauss-Newton steps
-  (Levenberg-Marquardt runs ``relnav.update``); the gate's distances come from the
-  compiled ``h``/``H`` and the numpy gating functions.
+  (``core.kernels.update``): EKF, and IEKF with line search, Levenberg-Marquardt or plain
+  Gauss-Newton steps; the gate's distances come from the compiled ``h``/``H`` and the
+  numpy gating functions.
 
 Filters with an error state (``filters/mekf.py`` is their reference) run the same kernels
 in its chart: the aligned one (``error_state: aligned``, the default of the EKF, IEKF and
@@ -207,7 +207,7 @@ def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: Fi
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
     if not hit[2]:
-        return estimators.update(x, P, step, rows, fs, setup)  # Levenberg-Marquardt
+        return estimators.update(x, P, step, rows, fs, setup)  # a filter type or option without kernels
     return compiled_update(x, P, step, rows, fs, setup)
 
 
@@ -289,7 +289,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
-    if np.count_nonzero(ok) < b:  # a Cholesky factorization failed: those trials take the numpy path (its solvers, its errors)
+    if np.count_nonzero(ok) < b:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
         u = _patch(u, ~ok, estimators.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
     return u
 
@@ -308,8 +308,8 @@ def _patch(u, bad: Array, v):
 
 def supported(fs: FilterSetup) -> bool:
     """Filters the compiled update covers (others run ``estimators.update``): the EKF, the IEKF and the MEKF in
-    any chart (full state, aligned or attitude error state), their iterated updates with line search or none,
-    and the UKF's iterated first update (its other updates are ``ukf.update`` on the compiled model)."""
+    any chart (full state, aligned or attitude error state), their iterated updates with any step control and
+    stopping test, and the UKF's iterated first update (its other updates are ``ukf.update`` on the compiled model)."""
     if chart_code(fs) is None:
         return False
     iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)

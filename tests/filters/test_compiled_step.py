@@ -128,13 +128,15 @@ def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
 
 @pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 def test_every_step_of_the_mekf_and_iterated_first_update_agrees(monkeypatch, error_state):
-    """The MEKF (iterated) and the EKF's iterated first update run the compiled kernels too, in every chart (the
-    MEKF always has an error state: ``full`` gives it the attitude chart, as ``mekf.chart_of``)."""
+    """The MEKF (iterated), the EKF's iterated first update and the IEKF with Levenberg-Marquardt steps run the
+    compiled kernels too, in every chart (the MEKF always has an error state: ``full`` gives it the attitude
+    chart, as ``mekf.chart_of``)."""
     from stereopose_mc.mc import trial
 
     both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
-    over = {**SHORT, "filters": [{"type": "mekf"}, {"type": "ekf", "first_update": "iterated"}]}
+    over = {**SHORT, "filters": [{"type": "mekf"}, {"type": "ekf", "first_update": "iterated"},
+                                 {"type": "iekf", "step_control": "levenberg_marquardt", "name": "iekf_lm"}]}
     scn, setup, truth, exact, filters = _prepared(error_state=error_state, **over)
     run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")
     _steps_agree(both, filters)
@@ -282,34 +284,14 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
-def test_levenberg_marquardt_runs_the_numpy_update_exactly():
-    """Levenberg-Marquardt step control has no compiled update: ``--kernels compiled`` runs the numpy update,
-    bit for bit, after the compiled prediction (so one step from the same prior is numpy's exactly)."""
-    from stereopose_mc.filters import compiled, estimators, mekf
-
-    for error_state in ("aligned", "attitude"):
-        x, P, step, fs, setup = _aligned_step("iekf")
-        fs = dataclasses.replace(fs, step_control="levenberg_marquardt", error_state=error_state)
-        if error_state == "attitude":  # the same prior seen in the attitude chart
-            P = aligned.to_attitude_chart(x, P)
-        assert not compiled.supported(fs) and compiled.chart_code(fs) is not None
-        rows = np.arange(len(x))
-        a = estimators.update(x, P, step, rows, fs, setup)
-        b = compiled.update(x, P, step, rows, fs, setup)
-        assert a.P.shape[-1] == x.shape[-1] - 1  # error-state covariance: really the error-state step
-        np.testing.assert_array_equal(a.x, b.x)
-        np.testing.assert_array_equal(a.P, b.P)
-        np.testing.assert_array_equal(mekf.update(x, P, step, rows, fs, setup).x, b.x)
-
-
-def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
+def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control="line_search"):
     """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R."""
     from stereopose_mc.filters import relnav
 
     scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
     loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
     fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
-                             stopping=stopping)  # fmt: skip
+                             stopping=stopping, step_control=control)  # fmt: skip
     rng = np.random.default_rng(4)
     ne = setup.x0.size - 1
     A = 0.02 * rng.normal(size=(B, ne, ne))
@@ -328,15 +310,22 @@ def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5):
     return x, P, step, fs, setup
 
 
-@pytest.mark.parametrize("kind,stopping", [("ekf", "mahalanobis"), ("iekf", "mahalanobis"), ("iekf", "scaled")])
+@pytest.mark.parametrize("kind,stopping,control", [("ekf", "mahalanobis", "line_search"),
+                                                   ("iekf", "mahalanobis", "line_search"),
+                                                   ("iekf", "scaled", "line_search"),
+                                                   ("iekf", "mahalanobis", "levenberg_marquardt"),
+                                                   ("iekf", "prior", "none")])  # fmt: skip
 @pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize("error_state", ["aligned", "attitude"])
-def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, masked, error_state):
-    """One error-state update (feature mask, gate, EKF or IEKF) with R loose enough that ``S`` is well conditioned:
-    the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of the covariance)."""
+def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind, stopping, control, masked,
+                                                                           error_state):  # fmt: skip
+    """One error-state update (feature mask, gate, EKF or IEKF with each step control) with R loose enough that
+    ``S`` is well conditioned: the compiled update equals ``mekf.update`` to round-off (1e-11 of sigma, 1e-11 of
+    the covariance)."""
     from stereopose_mc.filters import compiled, mekf
 
-    x, P, step, fs, setup = _aligned_step(kind, stopping, masked)
+    x, P, step, fs, setup = _aligned_step(kind, stopping, masked, control=control)
+    assert compiled.supported(fs)
     if error_state == "attitude":  # the same prior in the attitude chart
         fs, P = dataclasses.replace(fs, error_state="attitude"), aligned.to_attitude_chart(x, P)
     assert compiled.chart_code(fs) == {"aligned": 1, "attitude": 2}[error_state]

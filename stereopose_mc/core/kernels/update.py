@@ -9,7 +9,8 @@ of both updates, the EKF being one Gauss-Newton step of the IEKF, and ``P-`` its
 solved by Cholesky factorizations (LAPACK's ``potrf`` in place, ``_cholesky``); ``P+`` is the
 Joseph form of the numpy path evaluated for the optimal gain (``L A^-1 L^T``, positive
 semi-definite by construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
-line search (MAP cost, step halving) and unit-free stopping test run per trial.
+step control (line search on the MAP cost with step halving, or Levenberg-Marquardt's damped
+steps) and unit-free stopping test run per trial.
 
 Both kernels take the filter's ``chart``: 0, the full state (``filters.relnav``: ``x + dx``,
 quaternion renormalized); 1, the aligned error state (``filters.mekf`` with
@@ -41,7 +42,7 @@ from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
-CONTROL = {"none": 0, "line_search": 1}
+CONTROL = {"none": 0, "line_search": 1, "levenberg_marquardt": 2}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
 
 
@@ -70,7 +71,7 @@ def _cholesky(A, L):
             L[i, j] = 0.0
     if n == 0:
         return True
-    if L.strides[1] == 8:  # unit-stride rows: in place, the row stride of a block ``L[:m, :m]`` being the leading dimension
+    if L.strides[1] == 8:  # unit-stride rows: in place; a block ``L[:m, :m]``'s row stride is the leading dimension
         info = _xxpotrf(_KIND_D, _UPLO_U, n, L.ctypes, L.strides[0] // 8)
     else:  # (never in these kernels) a contiguous copy; no recursive call: a cached recursion does not link
         Lc = np.ascontiguousarray(L)
@@ -355,8 +356,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
 
     ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
     of the aligned error state, as ``mekf.update``; 2: ``errorstate.chart(x-, L z)``, the
-    attitude error state's); ``control``: 0 none, 1 line search; ``stopping``: 0 mahalanobis,
-    1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
+    attitude error state's); ``control``: 0 none, 1 line search, 2 Levenberg-Marquardt (``lam``
+    from 1e-3, /10 after an accepted step, x10 after a rejected one, as ``kalman.iekf_update``);
+    ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
     iterations, converged, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
     """
     B, nx = x.shape
@@ -379,6 +381,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     A = np.empty((n, n))
     Afin = np.empty((n, n))
     LA = np.empty((n, n))
+    Ad = np.empty((n, n) if control == 2 else (0, 0))  # Levenberg-Marquardt's damped A + lam I
     rws = np.empty(m)
     z = np.zeros(n)
     zn = np.empty(n)
@@ -427,10 +430,24 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _keep_linearization(A, Afin)
         failed = False
         fresh = True
+        lam = 1e-3  # Levenberg-Marquardt's damping, per trial
         for it in range(max_iter):
             # z_GN = A^-1 Hw^T (rw + Hw z) = A^-1 (g + (A - I) z); from the prior (z = 0) that is d = A^-1 g of
             # the NIS above
-            if it == 0:
+            if control == 2:
+                # Levenberg-Marquardt: ((1 + lam) I + Hw^T Hw) z = Hw^T (rw + Hw z_j) + lam z_j, i.e. (A + lam I) z =
+                # g + (A - I) z_j + lam z_j; kept if the MAP cost does not increase; lam / 10 then, else x 10
+                for i in range(n):
+                    zn[i] = ((g[i] - z[i]) + _dot_row(A, i, z, 0, n)) + lam * z[i]
+                for i in range(n):
+                    for j in range(i + 1):
+                        Ad[i, j] = A[i, j]
+                    Ad[i, i] += lam
+                if not _cholesky(Ad, LA):
+                    failed = True
+                    break
+                _chol_solve(LA, zn)
+            elif it == 0:
                 for i in range(n):
                     zn[i] = d[i]
             else:
@@ -475,6 +492,18 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 if not accepted:
                     for i in range(n):
                         zn[i] = z[i]
+            elif control == 2:  # Levenberg-Marquardt: the damped step, kept if the MAP cost does not increase
+                fresh = False  # LA is the factor of A + lam I
+                ct = _cost_at(chart, zn, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
+                              e, xt, hx, Hdummy, D, dD, False)  # fmt: skip
+                accepted = math.isfinite(ct) and ct <= cost
+                if accepted:
+                    c_new = ct
+                    lam = lam / 10.0
+                else:
+                    for i in range(n):
+                        zn[i] = z[i]
+                    lam = lam * 10.0
             its[b] += 1
             # size of the increment dz = zn - z
             size = 0.0
