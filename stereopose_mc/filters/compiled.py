@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
 from ..core.kernels import aligned as ka
-from ..core.kernels import attitude as katt
+from ..core.kernels import charts as kch
 from ..core.kernels import model as km
 from ..core.kernels import update as ku
 from ..core.orbit import leader_kinematics
@@ -57,7 +57,6 @@ def chart_code(fs: FilterSetup) -> int | None:
     return {"full": 0, "aligned": 1, "attitude": 2}.get(fs.error_state)
 
 
-CHART_KERNELS = {1: ka, 2: katt}  # the error-state charts' measurement kernels
 
 
 @functools.lru_cache(maxsize=4096)
@@ -155,8 +154,8 @@ def _batched(kernel):
 def _charts(fs: FilterSetup) -> tuple:
     """``(chart, local)`` of a UKF's error state on the compiled kernels (``aligned`` or ``attitude``), as
     ``mekf.chart_of(fs)``'s numpy ones."""
-    k = ka if fs.error_state == "aligned" else katt  # mekf.chart_of: the attitude chart for anything else
-    return _batched(k.chart_batch), _batched(k.local_batch)
+    code = chart_code(fs)  # mekf.chart_of: the attitude chart for anything but "aligned"
+    return (_batched(functools.partial(kch.chart_batch, code)), _batched(functools.partial(kch.local_batch, code)))
 
 
 def _measurer(setup: Setup, step: relnav.StepMeasurement):
@@ -184,10 +183,8 @@ def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd:
     if chart == 0:
         hx, Hval = km.measure_batch(x, *args)
         return hx, km.dense(Hval, km.measurement_columns(ne, vis, C, setup.pseudo), ne)
-    k = CHART_KERNELS[chart]
-    hx, Hval = k.measure_batch(x, np.zeros((x.shape[0], ne)), *args)
-    cols = k.measurement_columns(ne, vis, C, setup.pseudo)
-    return hx, (ka.dense(Hval, cols, ne) if chart == 1 else km.dense(Hval, cols, ne))
+    hx, Hval = kch.measure_batch(chart, x, np.zeros((x.shape[0], ne)), *args)
+    return hx, kch.dense(chart, Hval, kch.measurement_columns(chart, ne, vis, C, setup.pseudo), ne)
 
 
 def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> dict | None:
@@ -237,7 +234,9 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     C = 9 if setup.disparity else 8
     m = vis.size * C + (3 if setup.pseudo else 0)
     R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
-    cols = CHART_KERNELS.get(chart_code(fs), km).measurement_columns(ne, vis, C, setup.pseudo)
+    chart = chart_code(fs)
+    cols = (km.measurement_columns(ne, vis, C, setup.pseudo) if chart == 0 else
+            kch.measurement_columns(chart, ne, vis, C, setup.pseudo))  # fmt: skip
     fixed = (np.zeros(b, int), np.full(b, vis.size, np.int64), np.ones(b, int), np.ones(b, bool))
     for a in fixed:
         a.flags.writeable = False

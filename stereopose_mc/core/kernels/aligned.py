@@ -1,17 +1,18 @@
 """Compiled (Numba) twins of ``core.aligned`` and of the aligned error-state step of ``filters/mekf.py``.
 
 The numpy functions are the reference (their docstrings give the equations); here, one
-trial at a time, float64, ``nogil``, ``cache=True``:
+trial at a time, float64, ``nogil``, ``cache=True`` (the batch entry points of both charts,
+``chart = 1`` here, are in ``core.kernels.charts``):
 
-- ``chart_batch``, ``chart_jacobian_batch`` (``S = dx/de`` at any ``e``), ``error_map_batch``
-  (``T = de/dx``): ``core.aligned.chart``, ``chart_jacobian``, ``error_map``;
+- ``_chart``, ``_local``, ``_chart_jacobian`` (``S = dx/de`` at any ``e``), ``_error_map``
+  (``T = de/dx``): ``core.aligned.chart``, ``local``, ``chart_jacobian``, ``error_map``;
 - ``predict_covariance_batch``: ``P- = Phi_e P Phi_e^T + T(x-) diag(Q) T(x-)^T``,
   ``Phi_e = T(x-) Phi S(x+)`` (``mekf.predict``). ``Phi`` is the identity but for its
   13 x 15 block (``model.transition_reduced_batch``), ``S`` and ``T`` are identity-like with
   a few dense blocks, and so ``Phi_e`` is sparse but for its ``e_c, e_cdot`` rows (in case B
   about 360 of 841 entries): ``Phi_e`` is formed from the non-zeros of ``T`` against the
   rows of ``Phi S``, then ``P-`` as two sparse-times-dense products, lower triangle only;
-- ``measure_batch``: ``h(x_ref [+] e)`` and the row-sparse ``H_e = H(x_ref [+] e) S(x_ref, e)``
+- ``_measure_aligned``: ``h(x_ref [+] e)`` and the row-sparse ``H_e = H(x_ref [+] e) S(x_ref, e)``
   (``mekf.error_measurement``), from ``model._measure_one`` at the charted state.
 
 **The row-sparse ``H_e``.** A feature's position and velocity in ``L`` are
@@ -36,7 +37,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
-from .attitude import _small_quaternion, _small_quaternion_jacobian
+from .attitude import _qmul, _small_quaternion, _small_quaternion_jacobian
 from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -96,12 +97,7 @@ def _chart(xr, e, out, Dref, R, v):
     d2 = xr[5] + (w0 * v[1] - w1 * v[0])
     dq = np.empty(4)
     _small_quaternion(e[9:12], dq)
-    p0, p1, p2, p3 = xr[9], xr[10], xr[11], xr[12]
-    r0, r1, r2, r3 = dq[0], dq[1], dq[2], dq[3]
-    out[9] = p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3
-    out[10] = p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2
-    out[11] = p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1
-    out[12] = p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0
+    _qmul(xr[9:13], dq, out[9:13])  # q_ref (x) dq(delta)
     _dcm(dq, R)
     ub = np.zeros(3)
     for i in range(N):
@@ -127,27 +123,6 @@ def _chart(xr, e, out, Dref, R, v):
     out[3] = d0 + e[3] - (w1 * v[2] - w2 * v[1])
     out[4] = d1 + e[4] - (w2 * v[0] - w0 * v[2])
     out[5] = d2 + e[5] - (w0 * v[1] - w1 * v[0])
-
-
-@njit(**_JIT)
-def chart_batch(x_ref, e):
-    """``x_ref [+] e`` of every trial, ``(B, n)`` (``aligned.chart``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n))
-    Dref = np.empty((3, 3))
-    R = np.empty((3, 3))
-    v = np.empty(3)
-    for b in range(B):
-        _chart(x_ref[b], e[b], out[b], Dref, R, v)
-    return out
-
-
-@njit(**_JIT)
-def _qmul(p, q, out):
-    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
-    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
-    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
-    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
 
 
 @njit(**_JIT)
@@ -197,18 +172,6 @@ def _local(xh, xt, e, D, Dt, R, dq, tmp, v3):
     for j in range(2):
         e[12 + 3 * N + j] = xt[13 + 3 * N + j] - xh[13 + 3 * N + j]
     return nh, nt
-
-
-@njit(**_JIT)
-def local_batch(x_ref, x):
-    """``e = local(x_ref, x)`` of every trial, ``(B, n-1)`` (``aligned.local``)."""
-    B, n = x.shape
-    out = np.empty((B, n - 1))
-    D, Dt, R = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-    dq, tmp, v3 = np.empty(4), np.empty(4), np.empty((6, 3))
-    for b in range(B):
-        _local(x_ref[b], x[b], out[b], D, Dt, R, dq, tmp, v3)
-    return out
 
 
 @njit(**_JIT)
@@ -272,16 +235,6 @@ def _chart_jacobian(xr, e, S):
 
 
 @njit(**_JIT)
-def chart_jacobian_batch(x_ref, e):
-    """``S (B, n, n-1)`` of every trial (``aligned.chart_jacobian``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n, n - 1))
-    for b in range(B):
-        _chart_jacobian(x_ref[b], e[b], out[b])
-    return out
-
-
-@njit(**_JIT)
 def _error_map(xr, T):
     """``T = d e / d x`` at ``x_ref`` (``n-1 x n``, ``aligned.error_map``), written in full."""
     n = xr.shape[0]
@@ -339,16 +292,6 @@ def _error_map(xr, T):
     T[5, 6], T[5, 7] = v[1], -v[0]
     T[n - 3, n - 2] = 1.0
     T[n - 2, n - 1] = 1.0
-
-
-@njit(**_JIT)
-def error_map_batch(x_ref):
-    """``T (B, n-1, n)`` of every trial (``aligned.error_map``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n - 1, n))
-    for b in range(B):
-        _error_map(x_ref[b], out[b])
-    return out
 
 
 # --- prediction -----------------------------------------------------------------
@@ -457,14 +400,7 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
         LSq = np.empty((4, 3))
         _small_quaternion_jacobian(e[9:12], Sq)
         _left_times(xr[9:13], Sq, LSq)
-        for r in range(nf, nf + 3):
-            for k in range(NNZ):
-                h[k] = Hval[r, k]
-            for j in range(3):
-                Hval[r, 3 + j] = h[3] * LSq[0, j] + h[4] * LSq[1, j] + h[5] * LSq[2, j] + h[6] * LSq[3, j]
-            Hval[r, 6], Hval[r, 7] = h[7], h[8]
-            for k in range(8, NNZ):
-                Hval[r, k] = 0.0
+        _att._pseudo_rows_rotated(Hval, nf, LSq, h)
 
 
 def measurement_columns(ne, vis, channels, pseudo):
@@ -473,23 +409,6 @@ def measurement_columns(ne, vis, channels, pseudo):
     k = np.array([ne - 2, ne - 1])
     return row_columns(vis, channels, np.arange(9), E_POINTS, np.arange(ne, ne + 3),
                        np.concatenate((np.arange(6, 12), k)), pseudo)  # fmt: skip
-
-
-@njit(**_JIT)
-def measure_batch(x_ref, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
-    """``h(x_ref [+] e) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_e`` (``measurement_columns``)."""
-    B, n = x_ref.shape
-    C = 9 if disparity else 8
-    m = vis.shape[0] * C + (3 if pseudo else 0)
-    hx = np.empty((B, m))
-    Hval = np.zeros((B, m, NNZ))
-    xt = np.empty(n)
-    D = np.empty((3, 3))
-    dD = np.empty((4, 3, 3))
-    for b in range(B):
-        _measure_aligned(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac,
-                         hx[b], Hval[b], xt, D, dD)  # fmt: skip
-    return hx, Hval
 
 
 @njit(**_JIT)

@@ -1,15 +1,16 @@
 """Compiled (Numba) twins of ``core.errorstate``: the attitude error state (the multiplicative EKF's chart).
 
 The numpy functions are the reference (their docstrings give the equations); here, one
-trial at a time, float64, ``nogil``, ``cache=True``. The error state is
+trial at a time, float64, ``nogil``, ``cache=True`` (the batch entry points of both charts,
+``chart = 2`` here, are in ``core.kernels.charts``). The error state is
 ``eps = [d rho, d rho_dot, d omega, a, d P_1 .. d P_N, d k]`` (``n - 1``), additive on every
 block but the attitude, where ``q = dq(a) (x) q_ref`` with ``dq(a) = [1, a/2] / |[1, a/2]|``:
 
-- ``chart_batch``, ``local_batch`` (its inverse), ``chart_jacobian_batch`` (``S = dx/deps`` at any ``eps``: the identity
-  with the column shift past the quaternion, and ``R(q_ref) d dq/d a`` on the quaternion
-  rows), ``error_map_batch`` (``T = deps/dx`` at ``x_ref``: the same shift, and
+- ``_chart``, ``_local`` (its inverse), ``_chart_jacobian`` (``S = dx/deps`` at any ``eps``:
+  the identity with the column shift past the quaternion, and ``R(q_ref) d dq/d a`` on the
+  quaternion rows), ``_error_map`` (``T = deps/dx`` at ``x_ref``: the same shift, and
   ``Xi = 2 [R(q_ref^*)]_vec`` on the attitude rows);
-- ``measure_batch``: ``h(x_ref [+] eps)`` and the row-sparse ``H_eps = H S``. ``S`` only mixes the
+- ``_measure_attitude``: ``h(x_ref [+] eps)`` and the row-sparse ``H_eps = H S``. ``S`` only mixes the
   4 quaternion columns of ``H`` into the 3 attitude columns, so a feature's row keeps its 16
   non-zeros but one (``rho, rho_dot, omega``, ``a``, its point: 15) and a pseudo row its 9 but
   one (``omega``, ``a``, ``k``: 8), in the ``NNZ = 16`` layout of ``model.measure_batch`` that
@@ -31,6 +32,15 @@ from .model import NNZ, _measure_one, row_columns
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 ATT = 9  # first column of the attitude error ``a`` (and of the quaternion in the state)
+
+
+@njit(**_JIT)
+def _qmul(p, q, out):
+    """``out = p (x) q``, the Hamilton product (``quaternion.multiply``); ``out`` is neither input."""
+    out[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3]
+    out[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2]
+    out[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1]
+    out[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]
 
 
 @njit(**_JIT)
@@ -74,22 +84,7 @@ def _chart(xr, e, out):
         out[i] = xr[i] + e[i - 1]
     dq = np.empty(4)
     _small_quaternion(e[9:12], dq)
-    p0, p1, p2, p3 = dq[0], dq[1], dq[2], dq[3]
-    r0, r1, r2, r3 = xr[9], xr[10], xr[11], xr[12]
-    out[9] = p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3
-    out[10] = p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2
-    out[11] = p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1
-    out[12] = p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0
-
-
-@njit(**_JIT)
-def chart_batch(x_ref, e):
-    """``x_ref [+] eps`` of every trial, ``(B, n)`` (``errorstate.chart``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n))
-    for b in range(B):
-        _chart(x_ref[b], e[b], out[b])
-    return out
+    _qmul(dq, xr[9:13], out[9:13])  # dq(a) (x) q_ref
 
 
 @njit(**_JIT)
@@ -112,16 +107,6 @@ def _local(xr, x, e):
 
 
 @njit(**_JIT)
-def local_batch(x_ref, x):
-    """``eps = local(x_ref, x)`` of every trial, ``(B, n-1)`` (``errorstate.local``)."""
-    B, n = x.shape
-    out = np.empty((B, n - 1))
-    for b in range(B):
-        _local(x_ref[b], x[b], out[b])
-    return out
-
-
-@njit(**_JIT)
 def _chart_jacobian(xr, e, S):
     """``S = d (x_ref [+] eps) / d eps`` (``n x n-1``, ``errorstate.chart_jacobian``), written in full."""
     n = xr.shape[0]
@@ -133,16 +118,6 @@ def _chart_jacobian(xr, e, S):
     Sq = np.empty((4, 3))
     _small_quaternion_jacobian(e[9:12], Sq)
     _right_times(xr[9:13], Sq, S[9:13, 9:12])
-
-
-@njit(**_JIT)
-def chart_jacobian_batch(x_ref, e):
-    """``S (B, n, n-1)`` of every trial (``errorstate.chart_jacobian``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n, n - 1))
-    for b in range(B):
-        _chart_jacobian(x_ref[b], e[b], out[b])
-    return out
 
 
 @njit(**_JIT)
@@ -161,16 +136,6 @@ def _error_map(xr, T):
     T[9, 9], T[9, 10], T[9, 11], T[9, 12] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
     T[10, 9], T[10, 10], T[10, 11], T[10, 12] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
     T[11, 9], T[11, 10], T[11, 11], T[11, 12] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
-
-
-@njit(**_JIT)
-def error_map_batch(x_ref):
-    """``T (B, n-1, n)`` of every trial (``errorstate.error_map``)."""
-    B, n = x_ref.shape
-    out = np.empty((B, n - 1, n))
-    for b in range(B):
-        _error_map(x_ref[b], out[b])
-    return out
 
 
 # --- measurement ----------------------------------------------------------------
@@ -203,15 +168,23 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
             Hval[r, 9 + j] = h[9] * RSq[0, j] + h[10] * RSq[1, j] + h[11] * RSq[2, j] + h[12] * RSq[3, j]
             Hval[r, 12 + j] = h[13 + j]
         Hval[r, 15] = 0.0
-    if pseudo:  # [omega (3), q (4), k (2)] -> [omega, a (3), k]
-        for r in range(nf, nf + 3):
-            for k in range(NNZ):
-                h[k] = Hval[r, k]
-            for j in range(3):
-                Hval[r, 3 + j] = h[3] * RSq[0, j] + h[4] * RSq[1, j] + h[5] * RSq[2, j] + h[6] * RSq[3, j]
-            Hval[r, 6], Hval[r, 7] = h[7], h[8]
-            for k in range(8, NNZ):
-                Hval[r, k] = 0.0
+    if pseudo:
+        _pseudo_rows_rotated(Hval, nf, RSq, h)
+
+
+@njit(**_JIT)
+def _pseudo_rows_rotated(Hval, nf, M, h):
+    """The 3 pseudo rows (from row ``nf``) in an error-state chart: ``[omega (3), q (4), k (2)]`` of
+    ``model._pseudo_rows`` become ``[omega, H_q M (3), k]``, ``M = dq / d(rotation)`` (4 x 3) of the chart; ``h``:
+    scratch of ``NNZ``."""
+    for r in range(nf, nf + 3):
+        for k in range(NNZ):
+            h[k] = Hval[r, k]
+        for j in range(3):
+            Hval[r, 3 + j] = h[3] * M[0, j] + h[4] * M[1, j] + h[5] * M[2, j] + h[6] * M[3, j]
+        Hval[r, 6], Hval[r, 7] = h[7], h[8]
+        for k in range(8, NNZ):
+            Hval[r, k] = 0.0
 
 
 def measurement_columns(ne, vis, channels, pseudo):
@@ -219,21 +192,3 @@ def measurement_columns(ne, vis, channels, pseudo):
     and its point, the pseudo rows ``omega, a, k``."""
     k = np.array([ne - 2, ne - 1])
     return row_columns(vis, channels, np.arange(12), 12, np.arange(0), np.concatenate((np.arange(6, 12), k)), pseudo)
-
-
-@njit(**_JIT)
-def measure_batch(x_ref, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
-    """``h(x_ref [+] eps) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_eps``
-    (``measurement_columns``)."""
-    B, n = x_ref.shape
-    C = 9 if disparity else 8
-    m = vis.shape[0] * C + (3 if pseudo else 0)
-    hx = np.empty((B, m))
-    Hval = np.zeros((B, m, NNZ))
-    xt = np.empty(n)
-    D = np.empty((3, 3))
-    dD = np.empty((4, 3, 3))
-    for b in range(B):
-        _measure_attitude(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac,
-                          hx[b], Hval[b], xt, D, dD)  # fmt: skip
-    return hx, Hval
