@@ -405,7 +405,7 @@ def memory(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
         Row("memory", label, "largest single process RSS", pm.wait4_maxrss_mib, "MiB",
             note="ru_maxrss from os.wait4 (kernel-tracked, no sampling); "
                  f"sampled: {pm.sampled_max_process_rss_mib:.0f} MiB"),
-        Row("memory", label, f"wall of that run (--timeseries summary)", pm.wall_s, "s",
+        Row("memory", label, "wall of that run (--timeseries summary)", pm.wall_s, "s",
             note=f"{T / pm.wall_s:.1f} trials/s with all filters; {ndiv} of {ntr} (trial, filter) runs diverged"),
     ]  # fmt: skip
 

@@ -41,8 +41,8 @@ from ..core.orbit import leader_kinematics
 from . import estimators, relnav, ukf
 
 Array = NDArray[np.float64]
-COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")  # filter types with compiled kernels (the UKF: its own path, its
-# iterated first update on the update kernels)
+# filter types with compiled kernels (the UKF: its own path; its iterated first update on the update kernels)
+COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
 FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
@@ -55,8 +55,6 @@ def chart_code(fs: FilterSetup) -> int | None:
     if fs.kind in ("mekf", "ukf"):  # always an error state (the attitude chart for anything but "aligned")
         return 1 if fs.error_state == "aligned" else 2
     return {"full": 0, "aligned": 1, "attitude": 2}.get(fs.error_state)
-
-
 
 
 @functools.lru_cache(maxsize=4096)

@@ -34,7 +34,7 @@ from numba import njit
 
 from . import attitude as _att
 from .aligned import _error_map, _local, _qmul
-from .model import _dcm, _dot, _dot_row, _mirror_lower
+from .model import _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")

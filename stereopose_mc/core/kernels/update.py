@@ -433,27 +433,23 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         lam = 1e-3  # Levenberg-Marquardt's damping, per trial
         for it in range(max_iter):
             # z_GN = A^-1 Hw^T (rw + Hw z) = A^-1 (g + (A - I) z); from the prior (z = 0) that is d = A^-1 g of
-            # the NIS above
-            if control == 2:
-                # Levenberg-Marquardt: ((1 + lam) I + Hw^T Hw) z = Hw^T (rw + Hw z_j) + lam z_j, i.e. (A + lam I) z =
-                # g + (A - I) z_j + lam z_j; kept if the MAP cost does not increase; lam / 10 then, else x 10
-                for i in range(n):
-                    zn[i] = ((g[i] - z[i]) + _dot_row(A, i, z, 0, n)) + lam * z[i]
-                for i in range(n):
-                    for j in range(i + 1):
-                        Ad[i, j] = A[i, j]
-                    Ad[i, i] += lam
-                if not _cholesky(Ad, LA):
-                    failed = True
-                    break
-                _chol_solve(LA, zn)
-            elif it == 0:
+            # the NIS above. Levenberg-Marquardt: ((1 + lam) I + Hw^T Hw) z = Hw^T (rw + Hw z_j) + lam z_j, i.e.
+            # (A + lam I) z = g + (A - I) z_j + lam z_j, kept if the MAP cost does not increase (lam / 10), else x 10
+            if it == 0 and control != 2:
                 for i in range(n):
                     zn[i] = d[i]
             else:
                 for i in range(n):
                     zn[i] = (g[i] - z[i]) + _dot_row(A, i, z, 0, n)
-                if not _cholesky(A, LA):
+                M = A
+                if control == 2:
+                    for i in range(n):
+                        zn[i] += lam * z[i]
+                        for j in range(i + 1):
+                            Ad[i, j] = A[i, j]
+                        Ad[i, i] += lam
+                    M = Ad
+                if not _cholesky(M, LA):
                     failed = True
                     break
                 _chol_solve(LA, zn)
