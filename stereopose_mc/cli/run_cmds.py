@@ -85,21 +85,21 @@ def run(
         except (rep.ReportError, RunDirError) as exc:
             fail(str(exc))
     if not quiet:
-        pt = res.percentiles
-        for label in dict.fromkeys(pt["filter"]):
-            g = pt[pt["filter"] == label].iloc[0]
-            n, nd = int(g["trials"]), int(g["diverged"])
+        pt, tr = res.percentile_columns, res.trials_columns
+        for label in dict.fromkeys(pt["filter"].tolist()):
+            first = list(pt["filter"]).index(label)
+            n, nd = int(pt["trials"][first]), int(pt["diverged"][first])
             typer.echo(f"\n{label}: per-trial mean errors over t >= {scn.time.error_window_start_s:g} s, "
                        f"{n - nd}/{n} trials converged ({nd} diverged)")  # fmt: skip
             typer.echo(tables.format_table(pt, label, "converged"))
             if nd:
                 typer.echo("all trials (diverged = inf):")
                 typer.echo(tables.format_table(pt, label, "all"))
-        if "invalid" in res.trials and res.trials["invalid"].any():
-            bad = res.trials.loc[res.trials["invalid"], "trial"].nunique()
+        if "invalid" in tr and tr["invalid"].any():
+            bad = len(set(tr["trial"][tr["invalid"].astype(bool)].tolist()))
             typer.echo(f"\n{bad} trial(s) drew an invalid scenario (counted as diverged at step 0; "
                        "column 'invalid', reason 'invalid draw: ...' in trials.parquet)")  # fmt: skip
-        typer.echo(f"\n{res.trials['trial'].nunique()} trials in {res.wall_s:.1f} s -> {out}")
+        typer.echo(f"\n{len(set(tr['trial'].tolist()))} trials in {res.wall_s:.1f} s -> {out}")
 
 
 @app.command()

@@ -25,9 +25,9 @@ For a scenario with ``dispersions``, trial ``j``:
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.schema import Scenario
@@ -38,6 +38,9 @@ from ..sim.truth import Truth
 from ..filters.initialization import measurement_start
 from ..sim.faults import Faults, apply_faults
 from .trial import Bounds, ChunkResult, FilterRun, run_filter
+
+if TYPE_CHECKING:
+    from ..outputs.tables import Columns
 
 INVALID_PREFIX = "invalid draw: "
 
@@ -123,10 +126,12 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
     return ChunkResult(trials, [runs[lab] for lab in labels], time.perf_counter() - t0, faults), disp
 
 
-def with_columns(tdf: pd.DataFrame, disp: sd.TrialDispersions) -> pd.DataFrame:
-    """``trials_frame`` rows plus ``invalid`` and one column per dispersed scalar (trial-major rows)."""
-    pos = pd.Index(disp.trials).get_indexer(tdf["trial"].to_numpy())
-    extra = {"invalid": np.array([bool(disp.invalid[p]) for p in pos])}
+def with_columns(tc: Columns, disp: sd.TrialDispersions) -> Columns:
+    """``trials_columns`` rows plus ``invalid`` and one column per dispersed scalar (by each row's trial)."""
+    where = {int(t): i for i, t in enumerate(np.asarray(disp.trials).tolist())}
+    pos = np.array([where[t] for t in tc["trial"].tolist()], dtype=np.int64)
+    out = dict(tc)
+    out["invalid"] = np.asarray(disp.invalid, bool)[pos]
     for name, v in disp.columns.items():
-        extra[name] = v[pos]
-    return pd.concat([tdf.reset_index(drop=True), pd.DataFrame(extra)], axis=1)
+        out[name] = np.asarray(v)[pos]
+    return out

@@ -30,10 +30,9 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
 import numpy as np
-import pandas as pd
 import yaml
 from threadpoolctl import threadpool_limits
 
@@ -50,6 +49,10 @@ from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
 from . import dispersed
 from .trial import Bounds, run_chunk
+
+if TYPE_CHECKING:  # pandas is not imported by a run (~0.25 s): only by RunResult.trials / .percentiles
+    import pandas as pd
+    import pyarrow as pa
 
 TIMESERIES_MODES = ("none", "summary", "full")
 SUMMARY_TRIALS = 100  # trials kept in timeseries.parquet with --timeseries summary
@@ -104,9 +107,9 @@ def _prepared(scenario_json: str) -> Prepared:
 @dataclass
 class ChunkOutput:
     trials: np.ndarray
-    trials_df: pd.DataFrame
-    timeseries_df: pd.DataFrame | None
-    timing_df: pd.DataFrame
+    trials_table: pa.Table
+    timeseries_table: pa.Table | None
+    timing_table: pa.Table
     wall_s: float
     diverged: int
     diverged_by: dict[str, int] = field(default_factory=dict)  # per filter
@@ -129,19 +132,20 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
             res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels)
         else:
             res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels), None
-    tdf = tables.trials_frame(res, truth.t, setup.window_start, scn.seed)
+    tc = tables.trials_columns(res, truth.t, setup.window_start, scn.seed)
     if disp is not None:
-        tdf = dispersed.with_columns(tdf, disp)
+        tc = dispersed.with_columns(tc, disp)
     ts = None
     if timeseries != "none":
         keep = None if timeseries == "full" else (np.asarray(trials) < SUMMARY_TRIALS)
-        ts = tables.timeseries_frame(res, truth.t, keep)
-        # filter-major blocks -> (trial, filter in scenario order, step), as in the merged file
-        ts = ts.sort_values("trial", kind="stable").reset_index(drop=True) if len(ts) else None
+        ts = tables.timeseries_columns(res, truth.t, keep)
+        if ts is not None:  # filter-major blocks -> (trial, filter in scenario order, step), as in the merged file
+            ts = tables.arrow_table(tables.take_rows(ts, np.argsort(ts["trial"], kind="stable")))
     first = int(np.min(trials))
-    timing = tables.timing_frame(res, first)
-    by = {str(k): int(v) for k, v in tdf.groupby("filter", sort=False)["diverged"].sum().items()}
-    return ChunkOutput(np.asarray(trials), tdf, ts, timing, res.runtime_s, int(tdf["diverged"].sum()), by)
+    timing = tables.arrow_table(tables.timing_columns(res, first))
+    by = {label: int(tc["diverged"][tc["filter"] == label].sum()) for label in dict.fromkeys(tc["filter"].tolist())}
+    return ChunkOutput(np.asarray(trials), tables.arrow_table(tc), ts, timing, res.runtime_s,
+                       int(tc["diverged"].sum()), by)  # fmt: skip
 
 
 def plan_chunks(todo: np.ndarray, chunk_size: int) -> list[np.ndarray]:
@@ -178,11 +182,23 @@ class RunOptions:
 
 @dataclass
 class RunResult:
+    """A finished run: its directory, merged trials table and percentile table (as :data:`tables.Columns`)."""
+
     out: Path
-    trials: pd.DataFrame
-    percentiles: pd.DataFrame
+    trials_columns: tables.Columns
+    percentile_columns: tables.Columns
     wall_s: float
     chunks_run: int
+
+    @functools.cached_property
+    def trials(self) -> pd.DataFrame:
+        """``trials.parquet`` as a DataFrame (what ``pd.read_parquet`` gives)."""
+        return tables.arrow_table(self.trials_columns).to_pandas()
+
+    @functools.cached_property
+    def percentiles(self) -> pd.DataFrame:
+        """``percentiles.parquet`` as a DataFrame."""
+        return tables.arrow_table(self.percentile_columns).to_pandas()
 
 
 Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
@@ -194,9 +210,9 @@ def _parquet_meta(scn: Scenario, shash: str, kind: str) -> dict[str, str]:
             "stereopose_mc.seed": str(scn.seed), "stereopose_mc.units": "per field: metadata key 'unit'"}  # fmt: skip
 
 
-def _write_table(path: Path, df: pd.DataFrame, meta: dict[str, str]) -> None:
+def _write_table(path: Path, table: pa.Table | tables.Columns, meta: dict[str, str]) -> None:
     """A run table as Parquet, atomically, with the run's metadata and every column's unit."""
-    rundir.write_parquet(path, df, meta, units=tables.COLUMN_UNITS)
+    rundir.write_parquet(path, table, meta, units=tables.COLUMN_UNITS)
 
 
 def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: integrity.RunSpec) -> None:
@@ -204,10 +220,10 @@ def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: 
     first, last = int(out.trials[0]), int(out.trials[-1])
     meta = {**meta, "stereopose_mc.run_id": spec.run_id, "stereopose_mc.first": str(first),
             "stereopose_mc.last": str(last)}  # fmt: skip
-    if out.timeseries_df is not None and len(out.timeseries_df):
-        _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_df, meta)
-    _write_table(chunk_dir / _chunk_name("timing", out.trials), out.timing_df, meta)
-    _write_table(chunk_dir / _chunk_name("trials", out.trials), out.trials_df, meta)
+    if out.timeseries_table is not None and out.timeseries_table.num_rows:
+        _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_table, meta)
+    _write_table(chunk_dir / _chunk_name("timing", out.trials), out.timing_table, meta)
+    _write_table(chunk_dir / _chunk_name("trials", out.trials), out.trials_table, meta)
     integrity.write_sidecar(chunk_dir, spec, first, last, out.diverged_by)
 
 
@@ -347,31 +363,32 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
         yield from Parallel(return_as="generator_unordered")(calls)
 
 
+def _merged(files: list[Path], order: dict[str, int]) -> tables.Columns:
+    """Chunk files' rows, concatenated and sorted by (trial, filter in the scenario's order), stably."""
+    import pyarrow.parquet as pq
+
+    cols = tables.concat_columns([tables.columns_of(pq.ParquetFile(f).read()) for f in files])  # read_table imports pandas
+    rank = np.array([order[f] for f in cols["filter"].tolist()], dtype=np.int64)
+    return tables.take_rows(cols, np.lexsort((rank, cols["trial"])))
+
+
 def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
-             spec: integrity.RunSpec | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:  # fmt: skip
+             spec: integrity.RunSpec | None = None) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
     """Merge chunk files into the run's tables and write the percentile tables.
 
     With ``spec``, the merged tables are checked first (exactly one row per trial x filter,
     the full time series when it is on): :class:`integrity.IntegrityError`, nothing written.
+    Returns the merged trials table and the percentile table.
     """
     order = {name: i for i, name in enumerate(filter_order)}
-
-    def fsort(df):
-        df["_f"] = df["filter"].map(order)
-        return df
-
-    files = sorted((out / "chunks").glob("trials-*.parquet"))
-    trials = pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
-    trials = fsort(trials).sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
+    trials = _merged(sorted((out / "chunks").glob("trials-*.parquet")), order)
     if spec is not None:
         integrity.check_trials_table(trials, spec)
     rundir.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"),
                          units={**tables.COLUMN_UNITS, **dispersion_units(scn)})
     files = sorted((out / "chunks").glob("timing-*.parquet"))
     if files:
-        df = fsort(pd.concat([pd.read_parquet(f) for f in files], ignore_index=True))
-        df = df.sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
-        _write_table(out / "timing.parquet", df, _parquet_meta(scn, shash, "timing"))
+        _write_table(out / "timing.parquet", _merged(files, order), _parquet_meta(scn, shash, "timing"))
     # the time series can be large: streamed chunk by chunk (each chunk file is already
     # sorted by trial, filter, step, and the chunks are disjoint trial ranges, so file
     # order by first trial is trial order)
@@ -381,8 +398,8 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
                                            units=tables.COLUMN_UNITS)
         if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
             raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
-    pt = tables.percentile_table(trials, list(scn.percentiles))
-    rundir.atomic_write_text(out / "percentiles.csv", pt.to_csv(index=False, float_format="%.10g"))
+    pt = tables.percentile_columns(trials, list(scn.percentiles))
+    rundir.atomic_write_text(out / "percentiles.csv", tables.csv_text(pt))
     _write_table(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
     rundir.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
                              + tables.percentiles_markdown(pt, trials))  # fmt: skip

@@ -35,6 +35,7 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
     if trial >= scn.trials:
         raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
     co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full")
+    recomputed = co.trials_table.to_pandas()
     lines = [f"{scn.name}: trial {trial} (root seed {scn.seed}, SeedSequence spawn key ({trial},))"]
     identical = True
     stored = None
@@ -45,19 +46,19 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
     if scn.dispersions is not None and scn.dispersions.specs:
         from ..config.dispersions import units
 
-        row0 = co.trials_df.iloc[0]
+        row0 = recomputed.iloc[0]
         vals = ", ".join(f"{k}={row0[k]:.6g} {u if u != '-' else ''}".rstrip() for k, u in units(scn).items() if k in row0)
         lines.append(f"  dispersed ({scn.dispersions.sampling}): {vals}")
         if scn.dispersions.sampling == "sobol":
             from ..sim.dispersions import noise_streams
 
             lines.append(f"  noise stream of its Saltelli block: spawn key ({int(noise_streams(scn, [trial])[0])},)")
-    for _, row in co.trials_df.iterrows():
+    for _, row in recomputed.iterrows():
         errs = ", ".join(f"{n}={row[n]:.4g}" for n in ERROR_NAMES)
         status = "diverged at step %d (%s)" % (row["diverged_step"], row["diverged_reason"]) if row["diverged"] else "ok"
         lines.append(f"  {row['filter']}: {errs}; {status}")
     if stored is not None and len(stored):
-        same = co.trials_df.reset_index(drop=True).equals(stored)
+        same = recomputed.equals(stored)
         identical = bool(same)
         lines.append("identical to trials.parquet" if same else "DIFFERS from trials.parquet")
     else:
@@ -66,9 +67,9 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         out = Path(out)
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            rundir.write_parquet(out, co.timeseries_df, {"stereopose_mc.table": "timeseries", "trial": str(trial),
+            rundir.write_parquet(out, co.timeseries_table, {"stereopose_mc.table": "timeseries", "trial": str(trial),
                                  "stereopose_mc.seed": str(scn.seed)}, units=tables.COLUMN_UNITS)  # fmt: skip
         except OSError as exc:
             raise RerunError(f"--out {out}: cannot write it ({exc.strerror})") from None
         lines.append(f"time series -> {out}")
-    return RerunResult(co.trials_df, identical, lines)
+    return RerunResult(recomputed, identical, lines)

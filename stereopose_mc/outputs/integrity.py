@@ -27,8 +27,8 @@ import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-import pandas as pd
 import pyarrow.parquet as pq
 
 from .. import __version__
@@ -229,15 +229,20 @@ def check_complete(v: Verified, spec: RunSpec) -> None:
         raise IntegrityError(problems)
 
 
-def check_trials_table(df: pd.DataFrame, spec: RunSpec) -> None:
-    """Exactly one row per trial x filter, trials 0..N-1, the run's filters."""
+def check_trials_table(df: Any, spec: RunSpec) -> None:
+    """Exactly one row per trial x filter, trials 0..N-1, the run's filters (a DataFrame or ``tables.Columns``)."""
+    from .tables import columns_of
+
+    c = columns_of(df)
+    pairs = list(zip(c["trial"].tolist(), c["filter"].tolist()))
+    n = len(pairs)
     want = spec.trials * len(spec.filters)
-    dup = int(df.duplicated(["trial", "filter"]).sum())
+    dup = n - len(set(pairs))
     problems = []
     if dup:
         problems.append(f"trials table: {dup} duplicated trial x filter row(s)")
-    if len(df) != want or set(df["filter"]) != set(spec.filters) or set(df["trial"]) != set(range(spec.trials)):
-        problems.append(f"trials table: {len(df)} rows, expected {spec.trials} trials x {len(spec.filters)} filters")
+    if n != want or set(c["filter"].tolist()) != set(spec.filters) or set(c["trial"].tolist()) != set(range(spec.trials)):
+        problems.append(f"trials table: {n} rows, expected {spec.trials} trials x {len(spec.filters)} filters")
     if problems:
         raise IntegrityError(problems)
 

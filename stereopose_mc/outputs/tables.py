@@ -4,15 +4,30 @@ Percentiles use numpy's ``inverted_cdf`` method, which always returns the value 
 actual trial. Diverged trials are handled twice: in the ``all`` population their
 errors count as ``+inf`` (so a high percentile shows that some trials were lost), in
 the ``converged`` population they are left out and counted in ``diverged``.
+
+The run path (``spmc run``) builds, merges and writes its tables as :data:`Columns`
+(name -> 1-D numpy array, in column order) and pyarrow tables, without pandas (importing
+pandas alone takes ~0.25 s, a quarter of a two-trial run; ``outputs/arrow.py``). The functions that read a table take
+a pandas DataFrame, a pyarrow Table or :data:`Columns` alike (:func:`columns_of`);
+:func:`percentile_table` returns a DataFrame for the report and the studies.
 """
 
 from __future__ import annotations
 
+import csv
+import io
+from typing import TYPE_CHECKING, Any, Dict
+
 import numpy as np
-import pandas as pd
 
 from ..core import errorstate as es
 from ..mc.trial import ERROR_NAMES, ChunkResult
+
+if TYPE_CHECKING:
+    import pandas as pd
+    import pyarrow as pa
+
+Columns = Dict[str, np.ndarray]  # a table as name -> 1-D array (strings: object arrays), in column order
 
 ERROR_UNITS = {"e_rho": "m", "e_rho_dot": "m/s", "e_omega": "deg/s", "e_theta": "deg", "e_k1": "-", "e_k2": "-"}
 ERROR_LABELS = {"e_rho": "rho [m]", "e_rho_dot": "rho_dot [m/s]", "e_omega": "omega [deg/s]",
@@ -54,8 +69,49 @@ def row_nanmean(a: np.ndarray) -> np.ndarray:
     return out.reshape(a.shape[:-1])
 
 
-def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: int) -> pd.DataFrame:
-    """One row per trial x filter (deterministic columns only; timing is separate)."""
+def columns_of(table: Any) -> Columns:
+    """A table's columns as numpy arrays: a pyarrow Table, a pandas DataFrame or :data:`Columns`."""
+    if isinstance(table, dict):
+        return table
+    if hasattr(table, "column_names"):  # pyarrow.Table (nulls -> NaN or None)
+        from .arrow import to_numpy
+
+        return {n: to_numpy(table.column(n)) for n in table.column_names}
+    return {str(n): table[n].to_numpy() for n in table.columns}  # pandas.DataFrame
+
+
+def concat_columns(parts: list[Columns]) -> Columns:
+    """Row-wise concatenation of tables with the same columns (``pd.concat(..., ignore_index=True)``)."""
+    return {n: np.concatenate([p[n] for p in parts]) for n in parts[0]}
+
+
+def take_rows(cols: Columns, rows: np.ndarray) -> Columns:
+    """The rows ``rows`` (indices or a boolean mask) of every column."""
+    return {n: v[rows] for n, v in cols.items()}
+
+
+def _strings(v: Any, n: int | None = None) -> np.ndarray:
+    """A column of strings as an object array (``n`` copies of one string when ``n`` is given)."""
+    if n is not None:
+        out = np.empty(n, object)
+        out[:] = v
+        return out
+    return np.asarray(v, dtype=object)
+
+
+def arrow_table(cols: Columns) -> pa.Table:
+    """:data:`Columns` as a pyarrow Table, typed as ``pa.Table.from_pandas`` types a DataFrame of them
+    under pandas 3 (strings ``large_string``, NaN stored as null), so the Parquet bytes are those
+    the pandas path wrote (tested); without importing pandas (``outputs.arrow``)."""
+    import pyarrow as pa
+
+    from .arrow import to_arrow
+
+    return pa.table({n: to_arrow(v) for n, v in cols.items()})
+
+
+def trials_columns(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: int) -> Columns:
+    """One row per filter x trial, filter-major (deterministic columns only; timing is separate)."""
     w = window_mask(t, window_start)
     frames = []
     for r in chunk.runs:
@@ -67,14 +123,14 @@ def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: i
         nis_mean = row_nanmean(r.nis[:, w])
         means[div] = np.nan
         final = r.errors[:, -1]
-        d = {"trial": chunk.trials.astype(np.int64), "filter": [r.label] * B, "seed": np.full(B, seed, np.int64)}
+        d = {"trial": chunk.trials.astype(np.int64), "filter": _strings(r.label, B), "seed": np.full(B, seed, np.int64)}
         for j, name in enumerate(ERROR_NAMES):
             d[name] = means[:, j]
         for j, name in enumerate(ERROR_NAMES):
             d[f"final_{name}"] = final[:, j]
         d["diverged"] = div
         d["diverged_step"] = r.diverged_step.astype(np.int64)
-        d["diverged_reason"] = r.diverged_reason
+        d["diverged_reason"] = _strings(r.diverged_reason)
         d["iterations_mean"] = it_mean
         d["iekf_unconverged_steps"] = np.sum((r.iterations[:, 1:] > 0) & ~r.converged[:, 1:], axis=1).astype(np.int64)
         d["nees_mean"] = nees_mean
@@ -85,11 +141,12 @@ def trials_frame(chunk: ChunkResult, t: np.ndarray, window_start: float, seed: i
             d["nis_ratio_mean"] = row_nanmean(np.where(dof > 0, r.nis / np.maximum(dof, 1), np.nan)[:, w])
         d["nis_dof_mean"] = dof[:, w].mean(axis=1).astype(float)
         for j, name in enumerate(("k1", "k2")):
-            d[f"final_sigma_ratio_{name}"] = r.k_sigma_ratio[:, j] if r.k_sigma_ratio is not None else np.nan
+            d[f"final_sigma_ratio_{name}"] = (r.k_sigma_ratio[:, j] if r.k_sigma_ratio is not None
+                                               else np.full(B, np.nan))  # fmt: skip
         for name in NEES_PARTS:
             d[f"{name}_mean"] = row_nanmean(r.nees_parts[name][:, w]) if name in r.nees_parts else np.full(B, np.nan)
-        frames.append(pd.DataFrame(d))
-    return pd.concat(frames, ignore_index=True)
+        frames.append(d)
+    return concat_columns(frames)
 
 
 def _fault_columns(chunk: ChunkResult, r) -> dict[str, np.ndarray]:
@@ -102,26 +159,25 @@ def _fault_columns(chunk: ChunkResult, r) -> dict[str, np.ndarray]:
     return {"gated_features": gated, "dropped_features": drop, "outlier_features": out}
 
 
-def timing_frame(chunk: ChunkResult, chunk_id: int) -> pd.DataFrame:
-    rows = []
-    for r in chunk.runs:
-        rows.append(pd.DataFrame({"trial": chunk.trials.astype(np.int64), "filter": r.label,
-                                  "runtime_s": r.runtime_s, "chunk": chunk_id}))  # fmt: skip
-    return pd.concat(rows, ignore_index=True)
+def timing_columns(chunk: ChunkResult, chunk_id: int) -> Columns:
+    B = len(chunk.trials)
+    return concat_columns([{"trial": chunk.trials.astype(np.int64), "filter": _strings(r.label, B),
+                            "runtime_s": np.asarray(r.runtime_s, float), "chunk": np.full(B, chunk_id, np.int64)}
+                           for r in chunk.runs])  # fmt: skip
 
 
-def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None = None) -> pd.DataFrame:
-    """Per trial, filter and step: the six errors, NEES, NIS, IEKF iterations."""
+def timeseries_columns(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None = None) -> Columns | None:
+    """Per trial, filter and step: the six errors, NEES, NIS, IEKF iterations (filter-major; None: no rows)."""
     frames = []
     sel = np.ones(len(chunk.trials), bool) if keep is None else keep
     B = int(sel.sum())
     K1 = t.size
     if B == 0:
-        return pd.DataFrame({c: [] for c in TS_COLUMNS})
+        return None
     for r in chunk.runs:
         d = {
             "trial": np.repeat(chunk.trials[sel].astype(np.int64), K1),
-            "filter": [r.label] * (B * K1),
+            "filter": _strings(r.label, B * K1),
             "step": np.tile(np.arange(K1, dtype=np.int32), B),
             "t": np.tile(t, B),
         }
@@ -136,8 +192,8 @@ def timeseries_frame(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | None 
         d["gated"] = (np.zeros(B * K1) if r.gated is None else r.gated[sel].reshape(-1)).astype(np.int16)
         for name in NEES_PARTS:
             d[name] = r.nees_parts[name][sel].reshape(-1) if name in r.nees_parts else np.full(B * K1, np.nan)
-        frames.append(pd.DataFrame(d))
-    return pd.concat(frames, ignore_index=True)
+        frames.append(d)
+    return concat_columns(frames)
 
 
 def pct_value(p: float, percentiles: list[float]) -> int | float:
@@ -145,31 +201,59 @@ def pct_value(p: float, percentiles: list[float]) -> int | float:
     return int(p) if all(float(q).is_integer() for q in percentiles) else float(p)
 
 
-def percentile_table(trials: pd.DataFrame, percentiles: list[float]) -> pd.DataFrame:
-    """Percentiles of the per-trial window means, per filter and population."""
-    rows = []
-    for label, g in trials.groupby("filter", sort=False):
-        div = g["diverged"].to_numpy()
-        n, nd = len(g), int(div.sum())
+def percentile_columns(trials: Any, percentiles: list[float]) -> Columns:
+    """Percentiles of the per-trial window means, per filter (in order of appearance) and population."""
+    c = columns_of(trials)
+    filt = c["filter"]
+    rows: dict[str, list] = {k: [] for k in ("filter", "population", "percentile", *ERROR_NAMES, "trials", "diverged")}
+    for label in dict.fromkeys(filt.tolist()):
+        g = filt == label
+        div = c["diverged"][g].astype(bool)
+        n, nd = int(g.sum()), int(div.sum())
         for pop in ("all", "converged"):
             vals = {}
             for name in ERROR_NAMES:
-                v = g[name].to_numpy(dtype=float)
-                if pop == "all":
-                    v = np.where(div | ~np.isfinite(v), np.inf, v)
-                else:
-                    v = v[~div & np.isfinite(v)]
-                vals[name] = v
+                v = c[name][g].astype(float)
+                vals[name] = np.where(div | ~np.isfinite(v), np.inf, v) if pop == "all" else v[~div & np.isfinite(v)]
             for p in percentiles:
-                row = {"filter": label, "population": pop, "percentile": pct_value(p, percentiles)}
+                rows["filter"].append(label)
+                rows["population"].append(pop)
+                rows["percentile"].append(pct_value(p, percentiles))
                 for name in ERROR_NAMES:
                     v = vals[name]
-                    row[name] = float(np.percentile(v, p, method="inverted_cdf")) if v.size else np.nan
-                row["trials"] = n if pop == "all" else n - nd
-                row["diverged"] = nd
-                rows.append(row)
-    cols = ["filter", "population", "percentile", *ERROR_NAMES, "trials", "diverged"]
-    return pd.DataFrame(rows, columns=cols)
+                    rows[name].append(float(np.percentile(v, p, method="inverted_cdf")) if v.size else np.nan)
+                rows["trials"].append(n if pop == "all" else n - nd)
+                rows["diverged"].append(nd)
+    integral = all(float(q).is_integer() for q in percentiles)
+    out: Columns = {"filter": _strings(rows["filter"]), "population": _strings(rows["population"]),
+                    "percentile": np.asarray(rows["percentile"], np.int64 if integral else float)}  # fmt: skip
+    out.update({name: np.asarray(rows[name], float) for name in ERROR_NAMES})
+    out.update(trials=np.asarray(rows["trials"], np.int64), diverged=np.asarray(rows["diverged"], np.int64))
+    return out
+
+
+def percentile_table(trials: Any, percentiles: list[float]) -> pd.DataFrame:
+    """:func:`percentile_columns` as a DataFrame (for the report, the studies and the docs)."""
+    import pandas as pd
+
+    return pd.DataFrame(percentile_columns(trials, percentiles))
+
+
+def csv_text(cols: Columns, float_format: str = "%.10g") -> str:
+    """A table as CSV text, as ``DataFrame.to_csv(index=False, float_format=...)`` writes it (tested):
+    floats with ``float_format``, NaN as an empty field, minimal quoting, ``\\n`` line ends."""
+
+    def cell(v: Any) -> Any:
+        if isinstance(v, (float, np.floating)):
+            return "" if np.isnan(v) else float_format % v
+        return v
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(list(cols))
+    for row in zip(*(v.tolist() if v.dtype != object else v for v in cols.values())):
+        w.writerow([cell(v) for v in row])
+    return buf.getvalue()
 
 
 def _fmt(v: float) -> str:
@@ -178,11 +262,12 @@ def _fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
-def format_table(pt: pd.DataFrame, label: str, population: str = "converged", markdown: bool = False) -> str:
+def format_table(pt: Any, label: str, population: str = "converged", markdown: bool = False) -> str:
     """The thesis's layout: rows 50/70/90/100, columns rho, rho_dot, omega, theta, k1, k2."""
-    g = pt[(pt["filter"] == label) & (pt["population"] == population)]
+    c = columns_of(pt)
+    g = take_rows(c, (c["filter"] == label) & (c["population"] == population))
     head = ["pct"] + [ERROR_LABELS[n] for n in ERROR_NAMES]
-    body = [[f"{p:g}"] + [_fmt(r[n]) for n in ERROR_NAMES] for p, r in zip(g["percentile"], g.to_dict("records"))]
+    body = [[f"{p:g}"] + [_fmt(g[n][i]) for n in ERROR_NAMES] for i, p in enumerate(g["percentile"].tolist())]
     if markdown:
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         lines += ["| " + " | ".join(b) + " |" for b in body]
@@ -195,48 +280,54 @@ def format_table(pt: pd.DataFrame, label: str, population: str = "converged", ma
 UNOBSERVABLE_RATIO = 0.5  # final / initial sigma of a parameter above which the data did not reveal it
 
 
-def not_observable(trials: pd.DataFrame, label: str) -> dict[str, float]:
+def not_observable(trials: Any, label: str) -> dict[str, float]:
     """Parameters (k1, k2) the converged trials of ``label`` carry at more than half their initial sigma.
 
     Maps each to its median final / initial standard deviation: the data did not reveal
     it, and (the trial being converged, so its error is within ``sigma_ratio`` of its own
     sigma) the filter says so honestly; it is not a failure.
     """
-    g = trials[(trials["filter"] == label) & ~trials["diverged"].astype(bool)]
+    c = columns_of(trials)
+    g = (c["filter"] == label) & ~c["diverged"].astype(bool)
     out = {}
     for name in ("k1", "k2"):
         col = f"final_sigma_ratio_{name}"
-        if col in g and len(g):
-            m = float(np.nanmedian(g[col]))
-            if m > UNOBSERVABLE_RATIO:
-                out[name] = m
+        v = c[col][g].astype(float) if col in c else np.empty(0)
+        v = v[~np.isnan(v)]
+        if v.size and float(np.median(v)) > UNOBSERVABLE_RATIO:
+            out[name] = float(np.median(v))
     return out
 
 
-def population_note(trials: pd.DataFrame, label: str) -> str:
+def population_note(trials: Any, label: str) -> str:
     """Which trials the two populations hold: the ids left out of ``converged``, by reason."""
-    g = trials[(trials["filter"] == label) & trials["diverged"].astype(bool)]
-    if g.empty:
+    c = columns_of(trials)
+    g = (c["filter"] == label) & c["diverged"].astype(bool)
+    if not g.any():
         return "Both populations hold every trial.\n"
+    by: dict[str, list[int]] = {}
+    for trial, reason in zip(c["trial"][g].tolist(), c["diverged_reason"][g]):
+        by.setdefault(str(reason).split(":")[0], []).append(int(trial))
     lines = ["`converged` leaves out these trials (`all` holds them as +inf):\n"]
-    for reason, h in g.groupby(g["diverged_reason"].str.split(":").str[0], sort=True):
-        ids = sorted(int(t) for t in h["trial"])
+    for reason in sorted(by):
+        ids = sorted(by[reason])
         shown = ", ".join(map(str, ids[:30])) + (f", ... ({len(ids) - 30} more)" if len(ids) > 30 else "")
         lines.append(f"- {reason} ({len(ids)}): {shown}")
     return "\n".join(lines) + "\n"
 
 
-def percentiles_markdown(pt: pd.DataFrame, trials: pd.DataFrame | None = None) -> str:
+def percentiles_markdown(pt: Any, trials: Any = None) -> str:
+    c = columns_of(pt)
     out = []
-    for label in dict.fromkeys(pt["filter"]):
-        g = pt[pt["filter"] == label].iloc[0]
-        n, nd = int(g["trials"]), int(g["diverged"])
+    for label in dict.fromkeys(c["filter"].tolist()):
+        i = int(np.flatnonzero(c["filter"] == label)[0])
+        n, nd = int(c["trials"][i]), int(c["diverged"][i])
         out.append(f"## {label}: {n - nd} of {n} trials converged ({nd} diverged)\n")
         if trials is not None:
             out.append(population_note(trials, label))
             for name, m in not_observable(trials, label).items():
                 out.append(f"{name}: not observable in this run (median final sigma = {m:.2f} x the initial one; "
                            "carried with its covariance, not a failure).\n")
-        out.append("Converged trials only:\n\n" + format_table(pt, label, "converged", markdown=True) + "\n")
-        out.append("All trials (a diverged trial counts as +inf):\n\n" + format_table(pt, label, "all", markdown=True) + "\n")
+        out.append("Converged trials only:\n\n" + format_table(c, label, "converged", markdown=True) + "\n")
+        out.append("All trials (a diverged trial counts as +inf):\n\n" + format_table(c, label, "all", markdown=True) + "\n")
     return "\n".join(out)

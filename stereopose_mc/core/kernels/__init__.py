@@ -8,9 +8,11 @@ loaded from Numba's on-disk cache, ``cache=True``). ``core/kernels/model.py`` ho
 covariance predict, the row-sparse ``H_e``); ``core/kernels/attitude.py`` the same for the
 attitude error state; ``core/kernels/charts.py`` the batch entry points of both charts (the
 chart's code as an argument); ``core/kernels/update.py`` the EKF and IEKF updates in any of the
-three charts; ``core/kernels/consistency.py`` the per-step NEES.
+three charts; ``core/kernels/consistency.py`` the per-step NEES. ``_cache`` keys Numba's cache by the
+whole package's source; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``.
 """
 
-from . import _cache
+from . import _blas, _cache
 
+_blas.preload()  # SciPy's BLAS/LAPACK tables for Numba, without scipy.linalg's 0.14-0.22 s import
 _cache.install()  # before any kernel module is imported: their @njit(cache=True) pick a locator when decorated
