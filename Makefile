@@ -13,6 +13,7 @@ $(BIN)/python:
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,dask,bench]'
+	$(BIN)/python -m compileall -q stereopose_mc  # bytecode an editable install leaves out (PYTHONDONTWRITEBYTECODE: never written)
 	touch $(STAMP)
 
 venv: $(STAMP)
