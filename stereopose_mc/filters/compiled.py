@@ -287,11 +287,29 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
     if np.count_nonzero(ok) < b:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
-        u = _patch(u, ~ok, estimators.update(x[~ok], P[~ok], step, rows[~ok], fs, setup))
+        bad = ~ok
+        try:
+            u = patch(u, bad, estimators.update(x[bad], P[bad], step, rows[bad], fs, setup))
+        except np.linalg.LinAlgError as exc:
+            raise PartialUpdateError(u, bad, str(exc)) from exc
     return u
 
 
-def _patch(u, bad: Array, v):
+class PartialUpdateError(np.linalg.LinAlgError):
+    """The compiled update went through for every trial but ``bad``, and numpy's update failed on those as a batch.
+
+    ``update`` holds the good trials' results (``bad``'s rows are to be replaced): the caller
+    (``mc.trial._robust_update``) bisects ``bad`` alone with numpy's update instead of computing
+    the whole batch again. The same results as a bisection of the whole batch, since every
+    kernel treats trials independently.
+    """
+
+    def __init__(self, update: relnav.GatedUpdate, bad: Array, message: str):
+        super().__init__(message)
+        self.update, self.bad = update, bad
+
+
+def patch(u, bad: Array, v):
     """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields)."""
     import dataclasses
 

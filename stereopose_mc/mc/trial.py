@@ -308,6 +308,15 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
     try:
         return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
     except np.linalg.LinAlgError as exc:
+        bad = getattr(exc, "bad", None)  # filters.compiled.PartialUpdateError: only ``bad`` is left to do
+        if bad is not None:
+            from ..filters.compiled import patch
+
+            sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update)
+            reasons = [""] * rows.size
+            for i, r in zip(np.flatnonzero(bad).tolist(), why):
+                reasons[i] = r
+            return patch(exc.update, bad, sub), reasons
         if rows.size == 1:
             n, ne, m = xa.shape[-1], Pa.shape[-1], step.y.shape[-1]
             nan = relnav.GatedUpdate(np.full((1, n), np.nan), np.full((1, ne, ne), np.nan), np.full((1, m), np.nan),

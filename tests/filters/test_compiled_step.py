@@ -368,3 +368,35 @@ def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
         mekf.update(x, P, step, rows, fs, setup)
     with pytest.raises(np.linalg.LinAlgError):
         compiled.update(x, P, step, rows, fs, setup)
+
+
+def test_a_partial_failure_is_bisected_alone_with_the_same_results():
+    """Trials on which the kernel and then numpy's solvers fail: ``compiled.update`` raises ``PartialUpdateError``
+    holding the others' results, and ``mc.trial._robust_update`` bisects only those trials. The result (state,
+    covariance, every field, the failure reasons) is bit for bit that of bisecting the whole batch again."""
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc.trial import _robust_update
+
+    x, P, step, fs, setup = _aligned_step("iekf", B=6)
+    P[2], P[4] = -P[2], -P[4]
+    rows = np.arange(len(x))
+    with pytest.raises(compiled.PartialUpdateError) as info:
+        compiled.update(x, P, step, rows, fs, setup)
+    np.testing.assert_array_equal(info.value.bad, np.isin(rows, [2, 4]))
+    good = ~info.value.bad
+    alone = compiled.update(x[good], P[good], step, rows[good], fs, setup)
+    np.testing.assert_array_equal(info.value.update.x[good], alone.x)
+
+    def whole_batch_bisection(*args):  # the bisection before PartialUpdateError: the compiled kernels again on halves
+        try:
+            return compiled.update(*args)
+        except np.linalg.LinAlgError as exc:
+            raise np.linalg.LinAlgError(str(exc)) from None
+
+    u, why = _robust_update(x, P, step, rows, fs, setup, compiled.update)
+    v, why_v = _robust_update(x, P, step, rows, fs, setup, whole_batch_bisection)
+    assert why == why_v and [bool(r) for r in why] == [False, False, True, False, True, False]
+    assert why[2].startswith("linear algebra failure in the update")
+    for f in dataclasses.fields(u):
+        np.testing.assert_array_equal(getattr(u, f.name), getattr(v, f.name), f.name)
+    assert np.isnan(u.x[[2, 4]]).all() and np.isfinite(u.x[good]).all()
