@@ -29,8 +29,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import pyarrow.parquet as pq
-
 from .. import __version__
 from . import rundir
 
@@ -248,6 +246,8 @@ def check_trials_table(df: Any, spec: RunSpec) -> None:
 
 
 def check_rows(path: Path, want: int, what: str) -> None:
+    import pyarrow.parquet as pq  # here: a new run first needs it for its first chunk, while other chunks compute
+
     n = pq.ParquetFile(path).metadata.num_rows
     if n != want:
         raise IntegrityError([f"{path}: {n} rows, expected {want} ({what})"])
