@@ -178,3 +178,15 @@ def test_chunk_files_merge_as_pandas_would(tmp_path):
     df["_f"] = df["filter"].map(order)
     ref = df.sort_values(["trial", "_f"], kind="stable").drop(columns="_f").reset_index(drop=True)
     pd.testing.assert_frame_equal(pd.DataFrame(got), ref)
+
+
+def test_a_run_result_reads_as_its_files(quick_scenario, tmp_path):
+    """``RunResult.trials`` / ``.percentiles`` (built from the columns on first access) equal the published files."""
+    from stereopose_mc.config.loader import load_scenario
+    from stereopose_mc.mc import engine
+
+    out = tmp_path / "run"
+    res = engine.run(load_scenario(quick_scenario), out, engine.RunOptions(trials=3, chunk_size=2, command=["test"]))
+    pd.testing.assert_frame_equal(res.trials, pd.read_parquet(out / "trials.parquet"))
+    pd.testing.assert_frame_equal(res.percentiles, pd.read_parquet(out / "percentiles.parquet"))
+    assert (out / "percentiles.csv").read_text() == res.percentiles.to_csv(index=False, float_format="%.10g")
