@@ -15,8 +15,9 @@ the truth ``x_true`` (docs/filters.md, Consistency):
   (``v = D P_bar``), ``a = D delta``, ``d P_i = e_Pi + [P_i x] delta``, identity on ``omega``
   and ``k``.
 
-``M`` is held by rows of non-zeros (``1 + 3N`` at most); the block covariances are solved by
-the Cholesky of ``core.kernels.update``. A trial whose covariance is not positive definite
+``M`` is held by rows of non-zeros (``1 + 3N`` at most); the rho and rho_dot rows, whose ``3N``
+point entries repeat 3 coefficients, take the point rows of ``P`` summed once instead; the
+block covariances are solved by the Cholesky of ``core.kernels.update``. A trial whose covariance is not positive definite
 (or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
 positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
 
@@ -72,7 +73,13 @@ def _block(cnt, cols, vals, lo, hi, P, Y, C):
             k = cols[r, j]
             for c in range(n):
                 Y[a, c] += v * P[k, c]
-    for a in range(m):
+    _times_rows_t(cnt, cols, vals, lo, hi, Y, C)
+
+
+@njit(**_JIT)
+def _times_rows_t(cnt, cols, vals, lo, hi, Y, C):
+    """``C = Y M[lo:hi]^T``, symmetric: ``C[a, b] = Y[a] . M[lo + b]`` from the non-zeros of ``M``'s rows."""
+    for a in range(hi - lo):
         for b in range(a + 1):
             r = lo + b
             s = 0.0
@@ -80,6 +87,28 @@ def _block(cnt, cols, vals, lo, hi, P, Y, C):
                 s += Y[a, cols[r, j]] * vals[r, j]
             C[a, b] = s
             C[b, a] = s
+
+
+@njit(**_JIT)
+def _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp, N):
+    """``_block`` for rows whose point columns all carry the same 3 coefficients ``Wp[r - lo]`` (rho, rho_dot).
+
+    ``Y[a] = (the row's other non-zeros) P + Wp[a] . Sp``, ``Sp[c] = sum_i P[12 + 3 i + c]`` (the
+    point rows of ``P`` summed once per trial): 3 terms per row instead of ``3N``.
+    """
+    n = P.shape[0]
+    p0, p1 = 12, 12 + 3 * N
+    for a in range(hi - lo):
+        r = lo + a
+        for c in range(n):
+            Y[a, c] = Wp[a, 0] * Sp[0, c] + Wp[a, 1] * Sp[1, c] + Wp[a, 2] * Sp[2, c]
+        for j in range(cnt[r]):
+            k = cols[r, j]
+            if k < p0 or k >= p1:
+                v = vals[r, j]
+                for c in range(n):
+                    Y[a, c] += v * P[k, c]
+    _times_rows_t(cnt, cols, vals, lo, hi, Y, C)
 
 
 @njit(**_JIT)
@@ -92,7 +121,7 @@ def _put(cnt, cols, vals, r, c, v):
 
 
 @njit(**_JIT)
-def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3):
+def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
     n = xh.shape[0]
     ne = n - 1
     # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
@@ -108,22 +137,22 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
     # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
     # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
     # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
-    for j in range(3):
+    for j in range(3):  # G's columns, hence U's, are zero above the points' rows (12): solved from there
         for i in range(ne):
             u[i] = 0.0
         for i in range(N):
             u[12 + 3 * i + j] = 1.0
-        _forward(L, u, U[j])
+        _forward(L, u, U[j], 12)
         for k in range(j):
-            s = _dot_row(U, k, U[j], 0, ne)
-            for i in range(ne):
+            s = _dot_row(U, k, U[j], 12, ne)
+            for i in range(12, ne):
                 U[j, i] -= s * U[k, i]
-        s = math.sqrt(_dot_row(U, j, U[j], 0, ne))
-        for i in range(ne):
+        s = math.sqrt(_dot_row(U, j, U[j], 12, ne))
+        for i in range(12, ne):
             U[j, i] /= s
     for j in range(3):
-        s = _dot_row(U, j, w, 0, ne)
-        for i in range(ne):
+        s = _dot_row(U, j, w, 12, ne)
+        for i in range(12, ne):
             w[i] -= s * U[j, i]
     out[1] = _dot(w, w, 0, ne)
     # --- attitude-chart error, anchored at the truth: x_hat = x_true [+] eps
@@ -151,14 +180,17 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
     _put(cnt, cols, vals, 4, 8, -vh[0])
     _put(cnt, cols, vals, 5, 6, -vh[1])
     _put(cnt, cols, vals, 5, 7, vh[0])
+    for r in range(3):
+        for c in range(3):
+            Wp[r, c] = -D[r, c] / N
+            # [omega x] D
+            Wp[3 + r, c] = -(wh[(r + 1) % 3] * D[(r + 2) % 3, c] - wh[(r + 2) % 3] * D[(r + 1) % 3, c]) / N
     for i in range(N):
         p = xh[13 + 3 * i : 16 + 3 * i]
         for r in range(3):
             for c in range(3):
-                _put(cnt, cols, vals, r, 12 + 3 * i + c, -D[r, c] / N)
-                # [omega x] D
-                odc = (wh[(r + 1) % 3] * D[(r + 2) % 3, c] - wh[(r + 2) % 3] * D[(r + 1) % 3, c])
-                _put(cnt, cols, vals, 3 + r, 12 + 3 * i + c, -odc / N)
+                _put(cnt, cols, vals, r, 12 + 3 * i + c, Wp[r, c])
+                _put(cnt, cols, vals, 3 + r, 12 + 3 * i + c, Wp[3 + r, c])
             _put(cnt, cols, vals, 12 + 3 * i + r, 12 + 3 * i + r, 1.0)
         # [P_i x] on delta
         _put(cnt, cols, vals, 12 + 3 * i, 10, -p[2])
@@ -169,11 +201,22 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
         _put(cnt, cols, vals, 14 + 3 * i, 10, p[0])
     for j in range(2):
         _put(cnt, cols, vals, ne - 2 + j, ne - 2 + j, 1.0)
+    for c in range(ne):
+        Sp[0, c] = 0.0
+        Sp[1, c] = 0.0
+        Sp[2, c] = 0.0
+    for i in range(N):
+        for a in range(3):
+            for c in range(ne):
+                Sp[a, c] += P[12 + 3 * i + a, c]
     for b in range(6):
         lo = (0, 3, 6, 9, 12, 12 + 3 * N)[b]
         hi = (3, 6, 9, 12, 12 + 3 * N, ne)[b]
         m = hi - lo
-        _block(cnt, cols, vals, lo, hi, P, Y, C)
+        if b < 2:
+            _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N)
+        else:
+            _block(cnt, cols, vals, lo, hi, P, Y, C)
         out[2 + b] = _mahalanobis(eps[lo:hi], C[:m, :m], Lb[:m, :m], u)
     return True
 
@@ -224,6 +267,8 @@ def nees_batch(x_hat, P, x_true, attitude):
     dq = np.empty(4)
     tmp = np.empty(4)
     v3 = np.empty((6, 3))
+    Sp = np.empty((3, ne))
+    Wp = np.empty((6, 3))
     for t in range(B):
         ok = True
         for j in range(n):
@@ -247,11 +292,11 @@ def nees_batch(x_hat, P, x_true, attitude):
                 np.dot(C, Mi.T, Pa)
             _mirror_lower(Pa)
             _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq,
-                 tmp, v3)  # fmt: skip
+                 tmp, v3, Sp, Wp)  # fmt: skip
             pd[t] = _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
-                         R, dq, tmp, v3)  # fmt: skip
+                         R, dq, tmp, v3, Sp, Wp)  # fmt: skip
     return out, pd
 
 

@@ -113,16 +113,23 @@ def _cholesky_small(A, L):
 
 
 @njit(**_JIT)
-def _forward(L, b, out):
-    """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``)."""
+def _forward(L, b, out, lo=0):
+    """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``).
+
+    ``lo``: ``b[:lo]`` is zero, so ``out[:lo]`` is too and the sums start at ``lo`` (the same
+    numbers as from 0 when ``lo`` is a multiple of 4: the terms skipped are exact zeros, and
+    ``_dot_row``'s four partial sums keep their terms).
+    """
     n = L.shape[0]
-    for i in range(n):
+    for i in range(lo):
+        out[i] = 0.0
+    for i in range(lo, n):
         if i < 16:  # short rows (the NEES's small blocks): one running sum costs less than four
             t = b[i]
-            for k in range(i):
+            for k in range(lo, i):
                 t -= L[i, k] * out[k]
         else:
-            t = b[i] - _dot_row(L, i, out, 0, i)
+            t = b[i] - _dot_row(L, i, out, lo, i)
         out[i] = t / L[i, i]
 
 
