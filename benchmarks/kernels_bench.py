@@ -22,8 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .common import BenchConfig, Row, blas_limit, fit_exponent, judge, log, prepare, scenario_dict, single_filter, \
-    sphere_points, timed, write_yaml  # fmt: skip
+from .common import BenchConfig, Row, blas_limit, fit_exponent, judge, log, prepare, scenario_dict, timed, write_yaml
 
 KERNELS = ("numpy", "compiled")
 TARGET_E2E_S = 5.0  # 1,000 trials, both filters, --jobs 2, warm

@@ -97,7 +97,6 @@ def write_json(path: Path, obj: Any) -> None:
 def with_units(table: pa.Table, units: dict[str, str] | None) -> pa.Table:
     """``table`` with each field's unit (``units[name]``) in the field's metadata, key ``unit``."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     if not units:
         return table
@@ -108,7 +107,6 @@ def with_units(table: pa.Table, units: dict[str, str] | None) -> pa.Table:
 
 def field_units(path: Path) -> dict[str, str | None]:
     """The ``unit`` of each field of a Parquet file (None where it has none)."""
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
     return {f.name: (f.metadata or {}).get(b"unit", b"").decode() or None for f in pq.read_schema(path)}
@@ -217,7 +215,6 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
 
 
 def read_parquet_metadata(path: Path) -> dict[str, str]:
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
     md = pq.read_schema(path).metadata or {}

@@ -7,9 +7,10 @@ the ``converged`` population they are left out and counted in ``diverged``.
 
 The run path (``spmc run``) builds, merges and writes its tables as :data:`Columns`
 (name -> 1-D numpy array, in column order) and pyarrow tables, without pandas (importing
-pandas alone takes ~0.25 s, a quarter of a two-trial run; ``outputs/arrow.py``). The functions that read a table take
-a pandas DataFrame, a pyarrow Table or :data:`Columns` alike (:func:`columns_of`);
-:func:`percentile_table` returns a DataFrame for the report and the studies.
+pandas alone takes ~0.25 s, a quarter of a two-trial run; ``outputs/arrow.py``). The
+functions that read a table take a pandas DataFrame, a pyarrow Table or :data:`Columns`
+alike (:func:`columns_of`); :func:`percentile_table` returns a DataFrame for the report
+and the studies.
 """
 
 from __future__ import annotations
