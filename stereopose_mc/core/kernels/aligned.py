@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
-from .attitude import _qmul, _small_quaternion, _small_quaternion_jacobian
+from .attitude import _qmul, _quat_times, _small_quaternion, _small_quaternion_jacobian
 from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -48,18 +48,6 @@ E_POINTS = 12  # first column of the points in the aligned error state (and delt
 @njit(**_JIT)
 def _n_points(n):
     return (n - 15) // 3
-
-
-@njit(**_JIT)
-def _left_times(p, M, out):
-    """``out = L(p) M`` (``M 4 x 3``), ``L(p) r = p (x) r`` (``aligned.left_matrix``)."""
-    p0, p1, p2, p3 = p[0], p[1], p[2], p[3]
-    for j in range(3):
-        m0, m1, m2, m3 = M[0, j], M[1, j], M[2, j], M[3, j]
-        out[0, j] = p0 * m0 - p1 * m1 - p2 * m2 - p3 * m3
-        out[1, j] = p1 * m0 + p0 * m1 - p3 * m2 + p2 * m3
-        out[2, j] = p2 * m0 + p3 * m1 + p0 * m2 - p1 * m3
-        out[3, j] = p3 * m0 - p2 * m1 + p1 * m2 + p0 * m3
 
 
 @njit(**_JIT)
@@ -187,7 +175,7 @@ def _chart_jacobian(xr, e, S):
     _small_quaternion(e[9:12], dq)
     Sq = np.empty((4, 3))
     _small_quaternion_jacobian(e[9:12], Sq)
-    _left_times(xr[9:13], Sq, S[9:13, 9:12])
+    _quat_times(xr[9:13], Sq, S[9:13, 9:12], 1.0)
     R = np.empty((3, 3))
     dR = np.empty((4, 3, 3))
     _dcm_derivative(dq, R, dR)
@@ -399,7 +387,7 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
         Sq = np.empty((4, 3))
         LSq = np.empty((4, 3))
         _small_quaternion_jacobian(e[9:12], Sq)
-        _left_times(xr[9:13], Sq, LSq)
+        _quat_times(xr[9:13], Sq, LSq, 1.0)
         _att._pseudo_rows_rotated(Hval, nf, LSq, h)
 
 

@@ -63,18 +63,6 @@ def _small_quaternion_jacobian(d, Sq):
 
 
 @njit(**_JIT)
-def _right_times(r, M, out):
-    """``out = R(r) M`` (``M 4 x 3``), ``R(r) p = p (x) r`` (``errorstate.right_matrix``)."""
-    r0, r1, r2, r3 = r[0], r[1], r[2], r[3]
-    for j in range(3):
-        m0, m1, m2, m3 = M[0, j], M[1, j], M[2, j], M[3, j]
-        out[0, j] = r0 * m0 - r1 * m1 - r2 * m2 - r3 * m3
-        out[1, j] = r1 * m0 + r0 * m1 + r3 * m2 - r2 * m3
-        out[2, j] = r2 * m0 - r3 * m1 + r0 * m2 + r1 * m3
-        out[3, j] = r3 * m0 + r2 * m1 - r1 * m2 + r0 * m3
-
-
-@njit(**_JIT)
 def _chart(xr, e, out):
     """``out = x_ref [+] eps`` (``errorstate.chart``): additive, ``q = dq(a) (x) q_ref``."""
     n = xr.shape[0]
@@ -107,6 +95,21 @@ def _local(xr, x, e):
 
 
 @njit(**_JIT)
+def _quat_times(q, M, out, s):
+    """``out = L(q) M`` (``s = 1``: ``L(q) r = q (x) r``, ``aligned.left_matrix``) or ``R(q) M`` (``s = -1``:
+    ``R(q) p = p (x) q``, ``errorstate.right_matrix``), ``M 4 x 3``: the two differ in the sign of the
+    cross-product terms only (``s`` times them is exact, so either is the product written out)."""
+    q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
+    c1, c2, c3 = s * q1, s * q2, s * q3
+    for j in range(3):
+        m0, m1, m2, m3 = M[0, j], M[1, j], M[2, j], M[3, j]
+        out[0, j] = q0 * m0 - q1 * m1 - q2 * m2 - q3 * m3
+        out[1, j] = q1 * m0 + q0 * m1 - c3 * m2 + c2 * m3
+        out[2, j] = q2 * m0 + c3 * m1 + q0 * m2 - c1 * m3
+        out[3, j] = q3 * m0 - c2 * m1 + c1 * m2 + q0 * m3
+
+
+@njit(**_JIT)
 def _chart_jacobian(xr, e, S):
     """``S = d (x_ref [+] eps) / d eps`` (``n x n-1``, ``errorstate.chart_jacobian``), written in full."""
     n = xr.shape[0]
@@ -117,7 +120,7 @@ def _chart_jacobian(xr, e, S):
         S[i, i - 1] = 1.0
     Sq = np.empty((4, 3))
     _small_quaternion_jacobian(e[9:12], Sq)
-    _right_times(xr[9:13], Sq, S[9:13, 9:12])
+    _quat_times(xr[9:13], Sq, S[9:13, 9:12], -1.0)
 
 
 @njit(**_JIT)
@@ -157,7 +160,7 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
     Sq = np.empty((4, 3))
     RSq = np.empty((4, 3))
     _small_quaternion_jacobian(e[9:12], Sq)
-    _right_times(xr[9:13], Sq, RSq)
+    _quat_times(xr[9:13], Sq, RSq, -1.0)
     C = 9 if disparity else 8
     nf = vis.shape[0] * C
     h = np.empty(NNZ)
