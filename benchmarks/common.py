@@ -82,6 +82,7 @@ class BenchConfig:
     # scaling with the number of feature points
     scaling_points: tuple[int, ...] = (5, 10, 20, 50)
     scaling_batch: int = 100
+    growth_rounds: int = 7  # `steps`: interleaved rounds over N for the update growth (issue 14)
     scaling_steps: int = 5
     sphere_radius_m: float = 1.5
     feature_points: tuple[int, ...] = (5, 10, 20, 40)  # `steps` section: update cost vs N (issue 14)
@@ -110,7 +111,8 @@ class BenchConfig:
         base = dict(
             mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
             feature_points=(5, 10, 20),
-            scaling_batch=20, scaling_steps=2, memory_trials=1000, baseline_trials=20, baseline_batch=20,
+            scaling_batch=20, scaling_steps=2, growth_rounds=3, memory_trials=1000, baseline_trials=20,
+            baseline_batch=20,
         )  # fmt: skip
         base.update(kw)
         return cls(**base)

@@ -144,6 +144,102 @@ def test_posterior_covariance_blocked_substitution(n):
     assert np.array_equal(out, out.T)
 
 
+@pytest.mark.parametrize("n", [1, 5, 32, 33, 70, 134])
+def test_reverse_factor_solve_and_posterior_covariance(n):
+    """``_factor(A, LA, rev=True)`` is the Cholesky factor of ``A`` in reverse order (``A = U U^T``, ``U = J LA J``
+    upper triangular); ``_solve`` with it equals numpy's solve; ``_posterior_covariance_rev`` (``L U^-T``, lower
+    triangular, times its transpose; blocked past 32 rows) equals ``L A^-1 L^T`` by numpy and the other path, and
+    is exactly symmetric; False on a matrix that is not positive definite."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(200 + n)
+    A1, A2 = rng.standard_normal((2, n, n))
+    P, A = A1 @ A1.T + n * np.eye(n), A2 @ A2.T + np.eye(n)
+    L = np.linalg.cholesky(P)
+    LA = np.full((n, n), np.nan)
+    assert ku._factor(A, LA, True)
+    U = LA[::-1, ::-1]
+    assert np.all(np.tril(U, -1) == 0.0)
+    np.testing.assert_allclose(U @ U.T, A, rtol=0, atol=1e-12 * np.abs(A).max())
+    b = rng.standard_normal(n)
+    x = b.copy()
+    ku._solve(LA, x, True)
+    np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10 * np.abs(b).max())
+    out, W = np.full((n, n), np.nan), np.full((n, n), np.nan)
+    ku._posterior_covariance_rev(L, LA, out, W)
+    ref = L @ np.linalg.solve(A, L.T)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    assert np.array_equal(out, out.T)
+    LA2, out2 = np.empty((n, n)), np.empty((n, n))
+    assert ku._factor(A, LA2, False)
+    ku._posterior_covariance(L, LA2, out2, W)
+    np.testing.assert_allclose(out, out2, rtol=0, atol=1e-12 * np.abs(ref).max())
+    bad = A.copy()
+    bad[0, 0] = -1.0
+    assert not ku._factor(bad, LA, True)
+
+
+def _staircase_rows(rng, N, virtual, masked):
+    """Row-sparse model rows like the kernels' (``NNZ`` wide): per feature 8 rows on its own point's 3 columns and
+    the 12 common ones, or (``virtual``, the aligned chart) the first 9 and the 3 virtual columns ``n .. n+2``; 3
+    pseudo rows on
+    ``omega, delta, k``; rows in a shuffled order, a masked feature's rows all zero."""
+    from stereopose_mc.core.kernels.model import NNZ
+
+    n = 12 + 3 * N + 2
+    rows_c, rows_v = [], []
+    for f in range(N):
+        own = [12 + 3 * f + a for a in range(3)]
+        c = (list(range(9)) + own + [n, n + 1, n + 2]) if virtual else (list(range(12)) + own)
+        for _ in range(8):
+            rows_c.append(c)
+            rows_v.append(rng.standard_normal(len(c)) * (0.0 if f in masked else 1.0))
+    for _ in range(3):
+        c = [6, 7, 8, 9, 10, 11, n - 2, n - 1]
+        rows_c.append(c)
+        rows_v.append(rng.standard_normal(len(c)))
+    m = len(rows_c)
+    cols, Hval = np.zeros((m, NNZ), np.int64), np.zeros((m, NNZ))
+    order = rng.permutation(m)
+    for r, i in enumerate(order):
+        cols[r, : len(rows_c[i])], Hval[r, : len(rows_v[i])] = rows_c[i], rows_v[i]
+    return n, cols, Hval
+
+
+@pytest.mark.parametrize("N,virtual,masked", [(7, True, ()), (7, False, ()), (20, True, (3,)), (40, True, (0, 39)),
+                                              (40, False, (5,))])  # fmt: skip
+def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
+    """``_whiten_staircase`` (the rows of ``Hw`` cut where ``L`` is zero, sorted, the Gram product by strips over
+    the rows that reach them, the virtual columns split off as a rank-6 term) gives the ``A = I + Hw^T Hw`` and
+    ``g = Hw^T rw`` of the dense product ``Hw = R^-1/2 H L_aug``, and ``_whiten_g`` takes it past 32 columns."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(N + 7 * len(masked))
+    n, cols, Hval = _staircase_rows(rng, N, virtual, masked)
+    m = cols.shape[0]
+    X = rng.standard_normal((n, n))
+    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
+    Laug = np.vstack([L, rng.standard_normal((3, n))]) if virtual else L
+    y, hx = rng.standard_normal((2, m))
+    rws = 1.0 / rng.uniform(0.5, 2.0, m)
+    Hd = np.zeros((m, Laug.shape[0]))
+    for r in range(m):
+        np.add.at(Hd[r], cols[r], Hval[r])
+    Hw = (rws[:, None] * Hd) @ Laug
+    rw_ref = rws * (y - hx)
+    A_ref, g_ref = np.eye(n) + Hw.T @ Hw, Hw.T @ rw_ref
+    Hs, rw, A, g = np.full((m, n), np.nan), np.empty(m), np.full((n, n), np.nan), np.empty(n)
+    ws, wi = np.empty(7 * m + 16 * n + 14), np.empty(2 * m + n + 1, np.int64)
+    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi)
+    np.testing.assert_allclose(rw, rw_ref, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+    assert np.array_equal(A, A.T)
+    A2, g2 = np.empty((n, n)), np.empty(n)
+    ku._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi)
+    assert n > ku.SOLVE_BLOCK and np.array_equal(A2, A) and np.array_equal(g2, g)
+
+
 @pytest.mark.parametrize("n", [7, 32, 33, 70, 100])
 def test_gram_lower_blocked(n):
     """The lower triangle of ``M^T M`` (blocked past 32 columns) equals numpy's product."""

@@ -126,6 +126,21 @@ def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
     _steps_agree(both, filters)
 
 
+@pytest.mark.parametrize("error_state", ["full", "aligned"])
+def test_every_step_of_whole_trials_with_12_points_agrees(monkeypatch, error_state):
+    """Whole trials with 12 feature points (``n`` = 50: the kernels' large-``n`` path, ``_whiten_staircase`` and
+    ``_posterior_covariance_rev``), both filters of case B: every step agrees as in case B."""
+    from stereopose_mc.mc import trial
+
+    both = _Both(error_state)
+    monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
+    scn, setup, truth, exact, filters = _prepared(error_state=error_state, target={"feature_points_m": _sphere(12)},
+                                                  **SHORT)  # fmt: skip
+    assert setup.x0.size - (error_state != "full") > 32
+    run_chunk(scn.seed, np.arange(4), setup, truth, exact, filters, Bounds(), kernels="both")
+    _steps_agree(both, filters)
+
+
 @pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 def test_every_step_of_the_mekf_and_iterated_first_update_agrees(monkeypatch, error_state):
     """The MEKF (iterated), the EKF's iterated first update and the IEKF with Levenberg-Marquardt steps run the
@@ -284,20 +299,37 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
-def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control="line_search"):
-    """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R."""
+def _sphere(N, radius=1.5):
+    """``N`` feature points spread over a sphere (Fibonacci lattice), as the benchmark's scaling scenarios."""
+    i = np.arange(N) + 0.5
+    z = 1.0 - 2.0 * i / N
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    r = np.sqrt(1.0 - z * z)
+    return (radius * np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)).tolist()
+
+
+def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control="line_search", N=None, full=False):
+    """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R.
+
+    ``N``: that many feature points on a sphere instead of case B's five; ``full``: the prior in the full state
+    (``x = x_true + L z``, quaternion renormalized) for the full-state filter."""
     from stereopose_mc.filters import relnav
 
-    scn, setup, truth, exact, fss = _prepared(error_state="aligned", **SHORT)
+    more = {} if N is None else {"target": {"feature_points_m": _sphere(N)}}
+    scn, setup, truth, exact, fss = _prepared(error_state="full" if full else "aligned", **SHORT, **more)
     loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
     fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
                              stopping=stopping, step_control=control)  # fmt: skip
     rng = np.random.default_rng(4)
-    ne = setup.x0.size - 1
+    ne = setup.x0.size - (0 if full else 1)
     A = 0.02 * rng.normal(size=(B, ne, ne))
     P = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(ne)
-    x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), np.einsum("bij,bj->bi", np.linalg.cholesky(P),
-                                                                           rng.normal(size=(B, ne))))  # fmt: skip
+    dx = np.einsum("bij,bj->bi", np.linalg.cholesky(P), rng.normal(size=(B, ne)))
+    if full:
+        x = truth.x[k] + dx
+        x[:, 9:13] /= np.linalg.norm(x[:, 9:13], axis=-1, keepdims=True)
+    else:
+        x = aligned.chart(np.broadcast_to(truth.x[k], (B, ne + 1)), dx)
     vis = exact.visible[k]
     y = exact.y[k] + 1e-3 * rng.normal(size=(B,) + exact.y[k].shape)
     keep = rng.random((B, vis.sum())) > 0.2
@@ -344,6 +376,45 @@ def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind,
         assert a.rejected[0] >= 1 and (a.features_used < vis.sum()).any()
     if kind == "iekf":
         assert (a.iterations > 1).any()
+
+
+@pytest.mark.parametrize("kind,control", [("ekf", "line_search"), ("iekf", "line_search"),
+                                          ("iekf", "levenberg_marquardt")])  # fmt: skip
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
+def test_update_kernels_past_32_columns_equal_numpy(kind, control, masked, error_state):
+    """With 12 and 30 feature points (``n`` = 50 and 104 > 32) the kernels take the large-``n`` path: the
+    staircase Gram product (``_whiten_staircase``) and ``A`` factorized in reverse order for ``P+``
+    (``_posterior_covariance_rev``). One well-conditioned update in each chart (feature mask and gate, EKF or IEKF)
+    equals the numpy update to round-off: 1e-10 of sigma and of the covariance in the error states; in the full
+    state (whose prior includes the quaternion's norm direction) 1e-9, or 5x numpy's own change when its prior
+    moves by one ulp, whichever is larger (as the whole-trial tests' first updates)."""
+    from stereopose_mc.filters import compiled, estimators
+
+    for N in (12, 30):
+        x, P, step, fs, setup = _aligned_step(kind, masked=masked, control=control, B=3, N=N,
+                                              full=error_state == "full")  # fmt: skip
+        if error_state != "full":
+            fs = dataclasses.replace(fs, error_state=error_state)
+        if error_state == "attitude":
+            P = aligned.to_attitude_chart(x, P)
+        assert P.shape[-1] > 32 and compiled.chart_code(fs) == {"full": 0, "aligned": 1, "attitude": 2}[error_state]
+        rows = np.arange(len(x))
+        a = estimators.update(x, P, step, rows, fs, setup)
+        b = compiled.update(x, P, step, rows, fs, setup)
+        s = np.sqrt(np.diagonal(a.P, axis1=-2, axis2=-1))
+        tol_x = tol_P = 1e-10
+        if error_state == "full":  # the full state's quaternion: numpy's own 1-ulp floor reaches 6e-7 sigma here
+            u = estimators.update(np.nextafter(x, np.inf), P, step, rows, fs, setup)
+            tol_x = max(1e-9, 5 * np.max(np.abs(u.x - a.x)[:, : s.shape[-1]] / s))
+            tol_P = max(1e-9, 5 * np.max(np.abs(u.P - a.P) / (s[:, :, None] * s[:, None, :])))
+        assert np.max(np.abs(_Both.deviation(a.x, b.x, P.shape[-1], error_state)) / s) < tol_x, N
+        assert np.max(np.abs(a.P - b.P) / (s[:, :, None] * s[:, None, :])) < tol_P, N
+        np.testing.assert_allclose(b.nis, a.nis, rtol=1e-9)
+        for f in ("iterations", "converged", "rejected", "features_used"):
+            np.testing.assert_array_equal(getattr(b, f), getattr(a, f), f)
+        if masked:
+            assert a.rejected[0] >= 1
 
 
 def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():

@@ -22,7 +22,7 @@ the centroid ``u_bar``, on every ``e_Pj`` by the same 3 x 3 block, and not on ``
 exact arithmetic; ``H S`` in numpy leaves round-off ~1e-17 there, which this kernel does
 not form). So a feature row is stored as 15 values: ``e_c, e_cdot, e_omega`` (9), its own
 ``e_Pi`` (3) and the common block (3), whose columns ``ne, ne+1, ne+2`` are *virtual*:
-they stand for the sum of the 3 columns of every point (``augment`` appends to a matrix
+they stand for the sum of the 3 columns of every point (``virtual_rows`` appends to a matrix
 ``M`` those sums of rows, so that ``H_e M = sum_k h_k M_aug[c_k]``). The 3 pseudo rows see
 ``e_omega, delta, e_k`` (8 values). Rows are ``NNZ = 16`` wide (padding: value 0, column 0)
 like those of ``model.measure_batch``, so that ``core.kernels.update`` runs the EKF and the
@@ -400,13 +400,10 @@ def measurement_columns(ne, vis, channels, pseudo):
 
 
 @njit(**_JIT)
-def augment(M, out):
-    """``out[:ne] = M`` (``ne`` rows) and ``out[ne + a] = sum_j M[12 + 3 j + a]``: the rows of the virtual columns."""
+def virtual_rows(M, out):
+    """``out[ne + a] = sum_j M[12 + 3 j + a]`` (``ne`` rows in ``M``; ``M`` may be ``out[:ne]``)."""
     ne = M.shape[0]
     N = (ne - 14) // 3
-    for i in range(ne):
-        for j in range(M.shape[1]):
-            out[i, j] = M[i, j]
     for a in range(3):
         for j in range(M.shape[1]):
             out[ne + a, j] = 0.0

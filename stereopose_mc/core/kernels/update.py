@@ -24,6 +24,14 @@ A measurement row with ``mask = False`` (a feature dropped by the tracker or rej
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
 ``h = y`` and ``H = 0`` on that row.
 
+Past ``SOLVE_BLOCK`` (32) columns the update exploits more structure (issue 14, growth with
+the number of points): the rows of ``Hw`` stop where ``L`` is zero (``_whiten_staircase``: the
+Gram product by strips over the rows that reach them), the aligned chart is whitened in
+centered point coordinates (``_center_cov``: the points' mean and their deviations, so that
+the unmeasured centroid does not cancel in the product), and ``A`` is factorized in reverse
+order (``_factor``) so that ``P+ = L A^-1 L^T = M M^T`` with ``M`` lower triangular
+(``_posterior_covariance_rev``). Up to 32 columns (case B's 29) the kernels are as before.
+
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
 """
@@ -36,7 +44,7 @@ import numpy as np
 from numba import njit, types
 
 from . import attitude as _att
-from .aligned import _chart, _measure_aligned, augment
+from .aligned import _chart, _measure_aligned, virtual_rows
 from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -44,6 +52,7 @@ _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
 CONTROL = {"none": 0, "line_search": 1, "levenberg_marquardt": 2}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
+STAIR_BLOCK = 16  # the strips of rows of A in _whiten_staircase
 
 
 # LAPACK's dpotrf as Numba's own ``np.linalg.cholesky`` calls it (its C helper resolves scipy's
@@ -52,6 +61,14 @@ SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by b
 _xxpotrf = types.ExternalFunction("numba_xxpotrf", types.intc(types.char, types.char, types.intp,
                                                                types.CPointer(types.float64), types.intp))  # fmt: skip
 _KIND_D, _UPLO_U = 100, 85  # ord("d") (float64), ord("U")
+# BLAS's dgemm as Numba's own ``np.dot`` calls it (resolved at run time like ``_xxpotrf``), called directly for
+# products of sub-matrices given by a first element and a leading dimension (column-major, as BLAS sees a C-order
+# matrix: transposed), with ``beta``
+_xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
+    types.char, types.char, types.char, types.intp, types.intp, types.intp, types.CPointer(types.float64),
+    types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.intp,
+    types.CPointer(types.float64), types.CPointer(types.float64), types.intp))  # fmt: skip
+_NOTRANS, _TRANS = 110, 116  # ord("n"), ord("t")
 
 
 @njit(**_JIT)
@@ -193,14 +210,12 @@ def _reset(chart, xp, e, out):
 
 
 @njit(**_JIT)
-def _with_virtual(chart, M, Maug):
-    """``M`` with, in the aligned chart, the rows of the virtual columns appended (``aligned.augment``)."""
+def _with_virtual(chart, Maug):
+    """In the aligned chart, the rows of the virtual columns appended to ``M = Maug[:n]`` in place
+    (``aligned.virtual_rows``: ``Maug[n + a] = sum_j M[12 + 3 j + a]``); nothing in the other charts."""
     if chart == 1:
-        augment(M, Maug)
-    else:
-        for i in range(M.shape[0]):
-            for j in range(M.shape[1]):
-                Maug[i, j] = M[i, j]
+        n = Maug.shape[1]
+        virtual_rows(Maug[:n], Maug)
 
 
 def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart):
@@ -259,6 +274,172 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
 
 
 @njit(**_JIT)
+def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi):
+    """``_whiten`` and ``g = Hw^T rw``; past ``SOLVE_BLOCK`` columns by ``_whiten_staircase`` (the same numbers to
+    round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch)."""
+    if Hw.shape[1] <= SOLVE_BLOCK:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
+        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
+        _mul_t(Hw, rw, g)
+    else:
+        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi)
+
+
+@njit(**_JIT)
+def _own(h, c, n, Bv, r):
+    """An entry ``h`` of a whitened row in column ``c``: ``(h, c)`` if ``c`` is a column of the state, else (a
+    virtual column) ``h`` is added to ``Bv[r, c - n]`` and ``(0, 0)`` returned; ``(0, 0)`` for a zero entry."""
+    if h == 0.0:
+        return 0.0, 0
+    if c >= n:
+        Bv[r, c - n] += h
+        return 0.0, 0
+    return h, c
+
+
+@njit(**_JIT)
+def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
+    """``_whiten`` and ``g = Hw^T rw`` for a large ``n``, skipping the exact zeros of ``Hw = R^-1/2 H L``.
+
+    A row of ``H`` whose last non-zero column is ``c`` gives a row of ``Hw`` that is zero past
+    ``c`` (``L`` is lower triangular), and a feature's row sees only the 12 common columns and
+    its own point's: its ``Hw`` row stops at its point (a staircase). In the aligned chart a row
+    may also have 3 virtual columns, whose rows ``V = L[n:n+3]`` are dense; they are split off:
+    ``Hw = Hs + Bv V`` with ``Hs`` the staircase part and ``Bv (m, 3)`` the virtual coefficients, and
+
+        ``Hw^T Hw = Hs^T Hs + W V + V^T W^T``, ``W = Hs^T Bv + V^T E / 2``, ``E = Bv^T Bv``;
+        ``g = Hs^T rw + V^T (Bv^T rw)``.
+
+    ``Hs`` is stored with its rows sorted by their length, shortest first (a stable counting
+    sort: the features stay in their order, the pseudo rows, whose ``k`` columns are last, stay
+    last, and so the sums run in the order of the dense product, small terms first), and
+    ``Hs^T Hs`` is formed by strips of ``STAIR_BLOCK`` rows of ``A``: strip ``[i0, i1)`` is
+    ``Hs[r0:, i0:i1]^T Hs[r0:, :i1]`` over the rows ``r0:`` that reach column ``i0`` (one BLAS
+    ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
+    ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. ``A`` is exactly
+    symmetric (lower triangle mirrored).
+
+    The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
+    columns (every point, for the centroid) are therefore not split here but whitened in the
+    centered coordinates (``_centered_model_rows``), where only the last point's rows keep a
+    virtual column, of small rows.
+    """
+    m, n = Hs.shape
+    nv = L.shape[0] - n  # virtual columns (3 in the aligned chart, else 0)
+    Bv = ws[: 3 * m].reshape((m, 3))
+    Z = ws[3 * m : 7 * m].reshape((m, 4))
+    o = 7 * m
+    GC = ws[o : o + 4 * n].reshape((n, 4))  # (g, Cv): g = Hs^T rw, Cv = Hs^T Bv
+    o += 4 * n
+    U1 = ws[o : o + 6 * n].reshape((n, 6))
+    U2 = ws[o + 6 * n : o + 12 * n].reshape((6, n))
+    o += 12 * n
+    E = ws[o : o + 9].reshape((3, 3))
+    bw = ws[o + 9 : o + 12]
+    ab = ws[o + 12 : o + 14]  # alpha = 1, beta (BLAS reads them through pointers)
+    ext = wi[:m]
+    pos = wi[m : 2 * m]
+    count = wi[2 * m : 2 * m + n + 1]
+    # --- each row's length (last own non-zero column + 1) and its place, shortest first (stable)
+    for e in range(n + 1):
+        count[e] = 0
+    for r in range(m):
+        last = -1
+        for k in range(NNZ):
+            c = cols[r, k]
+            if Hval[r, k] != 0.0 and c < n and c > last:
+                last = c
+        ext[r] = last + 1
+        count[last + 1] += 1
+    start = 0
+    for e in range(n + 1):  # count[e] <- first position of the rows of length e
+        c = count[e]
+        count[e] = start
+        start += c
+    for r in range(m):
+        pos[r] = count[ext[r]]
+        count[ext[r]] += 1
+    # count[e] is now the first position of the rows longer than e: rows count[e]: reach column e
+    # --- the rows: Hs[pos[r]] = sum of the own columns' rows of L (four per pass); Bv; rw; Z[pos[r]] = (rw, Bv)
+    for r in range(m):
+        s = rws[r]
+        rw[r] = (yb[r] - hx[r]) * s
+        p = pos[r]
+        for j in range(n):
+            Hs[p, j] = 0.0
+        Bv[r, 0] = 0.0
+        Bv[r, 1] = 0.0
+        Bv[r, 2] = 0.0
+        for k in range(0, NNZ, 4):
+            h0, c0 = _own(Hval[r, k] * s, cols[r, k], n, Bv, r)
+            h1, c1 = _own(Hval[r, k + 1] * s, cols[r, k + 1], n, Bv, r)
+            h2, c2 = _own(Hval[r, k + 2] * s, cols[r, k + 2], n, Bv, r)
+            h3, c3 = _own(Hval[r, k + 3] * s, cols[r, k + 3], n, Bv, r)
+            top = max(max(c0, c1), max(c2, c3)) + 1
+            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
+                for j in range(top):
+                    Hs[p, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+        Z[p, 0] = rw[r]
+        Z[p, 1] = Bv[r, 0]
+        Z[p, 2] = Bv[r, 1]
+        Z[p, 3] = Bv[r, 2]
+    # (g, Cv) = Hs^T Z over the rows of any length (one gemm; column-major GC^T = Z^T Hs)
+    ab[0] = 1.0
+    ab[1] = 0.0
+    r0 = count[0]
+    c = m - r0
+    if c > 0:
+        _xxgemm(_KIND_D, _NOTRANS, _TRANS, 4, n, c, ab[0:1].ctypes, Z[r0, :].ctypes, 4, Hs[r0, :].ctypes, n,
+                ab[1:2].ctypes, GC.ctypes, 4)  # fmt: skip
+    else:
+        GC[:, :] = 0.0
+    for a in range(3):
+        t = 0.0
+        for r in range(m):
+            t += Bv[r, a] * rw[r]
+        bw[a] = t
+    # --- the lower triangle of Hs^T Hs by strips of rows of A, each over the rows that reach it
+    nb = STAIR_BLOCK
+    for i0 in range(0, n, nb):
+        i1 = min(i0 + nb, n)
+        r0 = count[i0]  # the rows from r0 on reach column i0
+        c = m - r0
+        if c == 0:
+            for i in range(i0, i1):
+                for j in range(i1):
+                    A[i, j] = 0.0
+            continue
+        # column-major view: Hs^T (n x m, ld n); A[i0:i1, :i1] is (A^T)[:i1, i0:i1] (ld n)
+        _xxgemm(_KIND_D, _NOTRANS, _TRANS, i1, i1 - i0, c, ab[0:1].ctypes, Hs[r0, :].ctypes, n, Hs[r0, i0:].ctypes,
+                n, ab[1:2].ctypes, A[i0, :].ctypes, n)  # fmt: skip
+    # --- the virtual columns: + W V + V^T W^T and g += V^T (Bv^T rw)
+    if nv == 0:
+        for j in range(n):
+            g[j] = GC[j, 0]
+    else:
+        for a in range(3):
+            for b in range(3):
+                t = 0.0
+                for r in range(m):
+                    t += Bv[r, a] * Bv[r, b]
+                E[a, b] = t
+        for j in range(n):
+            for a in range(3):
+                t = GC[j, 1 + a] + 0.5 * (L[n, j] * E[0, a] + L[n + 1, j] * E[1, a] + L[n + 2, j] * E[2, a])
+                U1[j, a] = t
+                U2[3 + a, j] = t
+                U1[j, 3 + a] = L[n + a, j]
+                U2[a, j] = L[n + a, j]
+            g[j] = GC[j, 0] + (L[n, j] * bw[0] + L[n + 1, j] * bw[1] + L[n + 2, j] * bw[2])
+        ab[1] = 1.0
+        # A += U1 U2 (C order): column-major A^T += U2^T U1^T
+        _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, n, n, 6, ab[0:1].ctypes, U2.ctypes, n, U1.ctypes, 6, ab[1:2].ctypes,
+                A.ctypes, n)  # fmt: skip
+    for i in range(n):
+        A[i, i] += 1.0
+    _mirror_lower(A)
+
+
+@njit(**_JIT)
 def _gram_lower(M, G):
     """The lower triangle of ``G = M^T M`` (``M (m, n)``) by BLAS: one product up to ``SOLVE_BLOCK`` columns,
     else the blocks on and below the diagonal only (about half the flops of the full product)."""
@@ -287,9 +468,10 @@ def _gram_lower(M, G):
 
 @njit(**_JIT)
 def _cost_at(chart, z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, e, xt, hx,
-             H, D, dD, compute_jac):  # fmt: skip
-    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2``; ``h`` in ``hx``, and ``H`` too when ``compute_jac``."""
-    _lower_mul(L, z, e)
+             H, D, dD, compute_jac, cen, N, tmp):  # fmt: skip
+    """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2``; ``h`` in ``hx``, and ``H`` too when ``compute_jac``
+    (``cen``: ``L = T^-1 L'``, ``_sqrt_mul`` through ``tmp``)."""
+    _sqrt_mul(L, z, e, cen, N, tmp)
     _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, H, xt, D, dD)
     c = 0.0
     for i in range(z.shape[0]):
@@ -350,6 +532,281 @@ def _posterior_covariance(L, LA, out, X):
 
 
 @njit(**_JIT)
+def _factor(A, LA, rev):
+    """``_cholesky(A, LA)``, or with ``rev`` the factor of ``A`` in reverse order: ``LA`` lower with
+    ``LA LA^T = J A J`` (``J`` the reversal of the indices), i.e. ``A = U U^T`` with ``U = J LA J``
+    upper triangular (``_solve``, ``_posterior_covariance_rev``). Only the lower triangle of ``A`` is read,
+    as by ``_cholesky``. False if ``A`` is not positive definite."""
+    if not rev:
+        return _cholesky(A, LA)
+    n = A.shape[0]
+    for i in range(n):  # (J A J)[i, j] = A[n-1-i, n-1-j] = A[n-1-j, n-1-i]: from the lower triangle of A (j <= i)
+        for j in range(i + 1):
+            LA[i, j] = A[n - 1 - j, n - 1 - i]
+    return _cholesky(LA, LA)
+
+
+@njit(**_JIT)
+def _solve(LA, b, rev):
+    """``b <- A^-1 b`` from ``_factor``'s ``LA`` (with ``rev``: ``A^-1 = J (LA LA^T)^-1 J``)."""
+    if not rev:
+        _chol_solve(LA, b)
+        return
+    n = b.shape[0]
+    for i in range(n // 2):
+        b[i], b[n - 1 - i] = b[n - 1 - i], b[i]
+    _chol_solve(LA, b)
+    for i in range(n // 2):
+        b[i], b[n - 1 - i] = b[n - 1 - i], b[i]
+
+
+@njit(**_JIT)
+def _posterior_covariance_rev(L, LA, out, W):
+    """``out = L A^-1 L^T`` with ``A`` factorized in reverse order (``_factor``: ``A = U U^T``, ``U`` upper).
+
+    ``L A^-1 L^T = M M^T`` with ``M = L U^-T`` lower triangular (a lower times a lower), about a
+    third of the flops of ``_posterior_covariance``'s full ``X``. With ``U = J LA J``:
+    ``M J = Q LA^-T``, ``Q = L J``; ``W = (M J)^T`` solves ``LA W = Q^T`` (forward substitution by
+    rows, blocked as in ``_posterior_covariance``), and row ``j`` of ``W`` is zero left of column
+    ``n - 1 - j`` (``W[j, i] = M[i, n - 1 - j]``), which the products skip. Then ``out = W^T W``
+    by strips of ``SOLVE_BLOCK`` rows over the rows of ``W`` that reach them (BLAS ``gemm``),
+    lower triangle mirrored: exactly symmetric.
+    """
+    n = L.shape[0]
+    nb = SOLVE_BLOCK
+    ab = np.empty(3)
+    ab[0], ab[1], ab[2] = -1.0, 1.0, 0.0
+    for j0 in range(0, n, nb):
+        j1 = min(j0 + nb, n)
+        for j in range(j0, j1):
+            lo = n - 1 - j
+            for i in range(lo):
+                W[j, i] = 0.0
+            for i in range(lo, n):
+                W[j, i] = L[i, lo]
+        if j0 > 0:
+            # W[j0:j1, c0:] -= LA[j0:j1, :j0] W[:j0, c0:], c0 = n - j0 (rows above are zero left of it);
+            # column-major: W^T[c0:, j0:j1] -= W^T[c0:, :j0] LA^T[:j0, j0:j1]
+            c0 = n - j0
+            _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, j0, j1 - j0, j0, ab[0:1].ctypes, W[0, c0:].ctypes, n,
+                    LA[j0, :].ctypes, n, ab[1:2].ctypes, W[j0, c0:].ctypes, n)  # fmt: skip
+        for j in range(j0, j1):
+            lo = n - 1 - j
+            _combine(W[j], lo, n, W, LA[j], j0, j, -1.0)
+            d = LA[j, j]
+            for i in range(lo, n):
+                W[j, i] /= d
+    # out[a0:a1, :a1] = W[r0:, a0:a1]^T W[r0:, :a1], r0 = n - a1 (the rows that reach column a1 - 1)
+    for a0 in range(0, n, nb):
+        a1 = min(a0 + nb, n)
+        r0 = n - a1
+        _xxgemm(_KIND_D, _NOTRANS, _TRANS, a1, a1 - a0, a1, ab[1:2].ctypes, W[r0, :].ctypes, n, W[r0, a0:].ctypes,
+                n, ab[2:3].ctypes, out[a0, :].ctypes, n)  # fmt: skip
+    _mirror_lower(out)
+
+
+# --- the centered point coordinates of the aligned chart (large n) ---------------------------------------------
+# The aligned chart's features see the points only through their deviations from the centroid, so the centroid's
+# error (the gauge) is never measured and keeps its prior variance while the deviations shrink. Whitened by the
+# Cholesky factor of P itself, a feature's row is the difference of two large rows (its point's and the mean's);
+# split into a staircase part and the point sums (_whiten_staircase), the Gram product squares that cancellation.
+# Past SOLVE_BLOCK columns the aligned chart is therefore whitened in centered coordinates
+# ``e' = T e``: the common block, then ``e_bar`` (the points' mean error, 3), then ``d_f = e_Pf - e_bar`` for the
+# first N - 1 points, then k: ``P' = T P T^T = L' L'^T`` and ``L = T^-1 L'`` (a square root of ``P``, not
+# triangular). A feature's row then sees its own ``d_f`` (the last point: minus the sum of all ``d``, a virtual
+# column of small rows) and ``e_bar`` with the coefficient ``h_own + N h_virtual`` (~0): a staircase again.
+
+
+@njit(**_JIT)
+def _center_cov(P, Pc, tmp, N):
+    """``Pc = T P T^T`` (the centered coordinates above; ``tmp`` an ``n x n`` scratch): ``tmp = T P`` by
+    combinations of rows, then each row of ``tmp`` mapped by ``T`` as a vector; lower triangle mirrored."""
+    _center_rows(P, tmp, N)
+    for i in range(P.shape[0]):
+        _center_vec(tmp[i], Pc[i], N)
+    _mirror_lower(Pc)
+
+
+@njit(**_JIT)
+def _uncenter_cov(Pc, P, tmp, N):
+    """``P = T^-1 Pc T^-T`` (as ``_center_cov``), exactly symmetric."""
+    _uncenter_rows(Pc, tmp, N)
+    for i in range(Pc.shape[0]):
+        _uncenter_vec_to(tmp[i], P[i], N)
+    _mirror_lower(P)
+
+
+@njit(**_JIT)
+def _center_rows(M, out, N):
+    """``out = T M`` by rows: the points' mean row, then each of the first ``N - 1`` point rows minus it."""
+    n, k = M.shape
+    p0 = 12
+    for i in range(n):
+        if i < p0 or i >= p0 + 3 * N:
+            for j in range(k):
+                out[i, j] = M[i, j]
+    for a in range(3):
+        for j in range(k):
+            out[p0 + a, j] = 0.0
+    for f in range(N):
+        for a in range(3):
+            for j in range(k):
+                out[p0 + a, j] += M[p0 + 3 * f + a, j]
+    for a in range(3):
+        for j in range(k):
+            out[p0 + a, j] /= N
+    for f in range(N - 1):
+        for a in range(3):
+            for j in range(k):
+                out[p0 + 3 + 3 * f + a, j] = M[p0 + 3 * f + a, j] - out[p0 + a, j]
+
+
+@njit(**_JIT)
+def _uncenter_rows(M, out, N):
+    """``out = T^-1 M`` by rows: ``e_Pf = d_f + e_bar`` (``f < N - 1``), ``e_P(N-1) = e_bar - sum_f d_f``."""
+    n, k = M.shape
+    p0 = 12
+    last = p0 + 3 * (N - 1)
+    for i in range(n):
+        if i < p0 or i >= p0 + 3 * N:
+            for j in range(k):
+                out[i, j] = M[i, j]
+    for a in range(3):
+        for j in range(k):
+            out[last + a, j] = M[p0 + a, j]
+    for f in range(N - 1):
+        for a in range(3):
+            for j in range(k):
+                d = M[p0 + 3 + 3 * f + a, j]
+                out[p0 + 3 * f + a, j] = d + M[p0 + a, j]
+                out[last + a, j] -= d
+
+
+@njit(**_JIT)
+def _center_vec(v, out, N):
+    """``out = T v`` (``out`` may not be ``v``)."""
+    n = v.shape[0]
+    p0 = 12
+    for i in range(p0):
+        out[i] = v[i]
+    for i in range(p0 + 3 * N, n):
+        out[i] = v[i]
+    m0 = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    for f in range(N):
+        m0 += v[p0 + 3 * f]
+        m1 += v[p0 + 3 * f + 1]
+        m2 += v[p0 + 3 * f + 2]
+    m0 /= N
+    m1 /= N
+    m2 /= N
+    for f in range(N - 1):
+        out[p0 + 3 + 3 * f] = v[p0 + 3 * f] - m0
+        out[p0 + 4 + 3 * f] = v[p0 + 3 * f + 1] - m1
+        out[p0 + 5 + 3 * f] = v[p0 + 3 * f + 2] - m2
+    out[p0], out[p0 + 1], out[p0 + 2] = m0, m1, m2
+
+
+@njit(**_JIT)
+def _uncenter_vec_to(v, out, N):
+    """``out = T^-1 v`` (``out`` may not be ``v``)."""
+    n = v.shape[0]
+    p0 = 12
+    last = p0 + 3 * (N - 1)
+    for i in range(p0):
+        out[i] = v[i]
+    for i in range(p0 + 3 * N, n):
+        out[i] = v[i]
+    s0, s1, s2 = v[p0], v[p0 + 1], v[p0 + 2]
+    for f in range(N - 1):
+        d0, d1, d2 = v[p0 + 3 + 3 * f], v[p0 + 4 + 3 * f], v[p0 + 5 + 3 * f]
+        out[p0 + 3 * f] = d0 + v[p0]
+        out[p0 + 3 * f + 1] = d1 + v[p0 + 1]
+        out[p0 + 3 * f + 2] = d2 + v[p0 + 2]
+        s0 -= d0
+        s1 -= d1
+        s2 -= d2
+    out[last], out[last + 1], out[last + 2] = s0, s1, s2
+
+
+@njit(**_JIT)
+def _centered_virtual_rows(Laug, N):
+    """``Laug[n + a] = sum_{f < N-1} L'[15 + 3 f + a]``: the rows of the last point's virtual column."""
+    n = Laug.shape[1]
+    for a in range(3):
+        for j in range(n):
+            t = 0.0
+            for f in range(N - 1):
+                t += Laug[15 + 3 * f + a, j]
+            Laug[n + a, j] = t
+
+
+@njit(**_JIT)
+def _centered_model_rows(Hval, cols, Hc, cc, n, N):
+    """The aligned chart's row-sparse ``H_e`` in the centered coordinates: ``H' = H_e T^-1`` (same layout).
+
+    A point column ``12 + 3 f + a`` gives its value to ``d_f`` (column ``15 + 3 f + a``) and to ``e_bar``
+    (``12 + a``), or for the last point to ``e_bar`` and, negated, to the virtual column ``n + a`` (the sum of
+    every ``d``); a virtual column ``n + a`` of ``H_e`` (the sum of every point) gives ``N`` times its value to
+    ``e_bar``. The other columns are unchanged."""
+    m = Hval.shape[0]
+    p0 = 12
+    for r in range(m):
+        eb0 = 0.0
+        eb1 = 0.0
+        eb2 = 0.0
+        k = 0
+        for q in range(NNZ):
+            Hc[r, q] = 0.0
+            cc[r, q] = 0
+        for q in range(NNZ):
+            h = Hval[r, q]
+            c = cols[r, q]
+            if h == 0.0:
+                continue
+            if c >= n:
+                a = c - n
+                h = h * N
+            elif c >= p0 and c < p0 + 3 * N:
+                f = (c - p0) // 3
+                a = (c - p0) - 3 * f
+                if f < N - 1:
+                    Hc[r, k] = h
+                    cc[r, k] = p0 + 3 + 3 * f + a
+                else:
+                    Hc[r, k] = -h
+                    cc[r, k] = n + a
+                k += 1
+            else:
+                Hc[r, k] = h
+                cc[r, k] = c
+                k += 1
+                continue
+            if a == 0:
+                eb0 += h
+            elif a == 1:
+                eb1 += h
+            else:
+                eb2 += h
+        if eb0 != 0.0 or eb1 != 0.0 or eb2 != 0.0:
+            Hc[r, k], cc[r, k] = eb0, p0
+            Hc[r, k + 1], cc[r, k + 1] = eb1, p0 + 1
+            Hc[r, k + 2], cc[r, k + 2] = eb2, p0 + 2
+
+
+@njit(**_JIT)
+def _sqrt_mul(L, z, out, cen, N, tmp):
+    """``out = L z`` for the whitening's square root: ``L`` lower triangular, or (``cen``) ``T^-1 L' z`` (through
+    ``tmp``)."""
+    if cen:
+        _lower_mul(L, z, tmp)
+        _uncenter_vec_to(tmp, out, N)
+    else:
+        _lower_mul(L, z, out)
+
+
+@njit(**_JIT)
 def _lower_mul(L, z, out):
     """``out = L z`` (``L`` lower triangular)."""
     for i in range(L.shape[0]):
@@ -381,9 +838,17 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     hx = np.empty(m)
     Hval = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
-    L = np.empty((n, n))
-    Laug = np.empty((n + (3 if chart == 1 else 0), n))
+    Laug = np.empty((n + (3 if chart == 1 else 0), n))  # L, then the rows of the virtual columns (_with_virtual)
+    L = Laug[:n]
     Hw = np.empty((m, n))
+    ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
+    rev = n > SOLVE_BLOCK  # A factorized in reverse order (_factor), for P+ by _posterior_covariance_rev
+    cen = chart == 1 and rev  # whitened in the centered point coordinates (above)
+    Np = (n - 14) // 3
+    g2 = np.empty(n)  # _sqrt_mul's scratch
+    Hc = np.zeros((m, NNZ) if cen else (0, NNZ))
+    cc = np.zeros((m, NNZ) if cen else (0, NNZ), np.int64)
+    wi = np.empty(2 * m + n + 1, np.int64)
     rw = np.empty(m)
     A = np.empty((n, n))
     Afin = np.empty((n, n))
@@ -407,21 +872,31 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         mk = mask[b]
         for r in range(m):
             rws[r] = 1.0 / math.sqrt(R[b, r])
-        if not _cholesky(P[b], L):
-            ok[b] = False
-            continue
-        _with_virtual(chart, L, Laug)
+        if cen:
+            _center_cov(P[b], A, T, Np)
+            if not _cholesky(A, L):
+                ok[b] = False
+                continue
+            _centered_virtual_rows(Laug, Np)
+        else:
+            if not _cholesky(P[b], L):
+                ok[b] = False
+                continue
+            _with_virtual(chart, Laug)
         for i in range(n):
             e[i] = 0.0
         _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                     D, dD)  # fmt: skip
         _masked(hx, Hval, yb, mk)
-        _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
-        _mul_t(Hw, rw, g)
+        if cen:
+            _centered_model_rows(Hval, cols, Hc, cc, n, Np)
+            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+        else:
+            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
-        if not _cholesky(A, LA):
+        if not _factor(A, LA, rev):
             ok[b] = False
             continue
         c0 = 0.0
@@ -429,7 +904,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             c0 += rw[r] * rw[r]
         for i in range(n):
             d[i] = g[i]
-        _chol_solve(LA, d)
+        _solve(LA, d, rev)
         nis[b] = c0 - _dot(g, d, 0, n)
         cost = c0
         for i in range(n):
@@ -456,10 +931,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                             Ad[i, j] = A[i, j]
                         Ad[i, i] += lam
                     M = Ad
-                if not _cholesky(M, LA):
+                if not _factor(M, LA, rev):
                     failed = True
                     break
-                _chol_solve(LA, zn)
+                _solve(LA, zn, rev)
             fresh = True  # LA is the factor of this iterate's A
             accepted = True
             c_new = cost
@@ -483,7 +958,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                         zt[i] = z[i] + a * d[i]
                     jac = jac_full and _h == 0
                     ct = _cost_at(chart, zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd,
-                                  ndd, e, xt, hx, Hval if jac else Hdummy, D, dD, jac)  # fmt: skip
+                                  ndd, e, xt, hx, Hval if jac else Hdummy, D, dD, jac, cen, Np, g2)  # fmt: skip
                     if math.isfinite(ct) and ct <= cost:
                         accepted = True
                         have_jac = jac
@@ -498,7 +973,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             elif control == 2:  # Levenberg-Marquardt: the damped step, kept if the MAP cost does not increase
                 fresh = False  # LA is the factor of A + lam I
                 ct = _cost_at(chart, zn, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                              e, xt, hx, Hdummy, D, dD, False)  # fmt: skip
+                              e, xt, hx, Hdummy, D, dD, False, cen, Np, g2)  # fmt: skip
                 accepted = math.isfinite(ct) and ct <= cost
                 if accepted:
                     c_new = ct
@@ -522,10 +997,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 size = math.sqrt(size)
             else:
                 for i in range(n):
-                    s = 0.0
-                    for j in range(i + 1):
-                        s += L[i, j] * (zn[j] - z[j])
-                    dx[i] = s
+                    zt[i] = zn[i] - z[i]
+                _sqrt_mul(L, zt, dx, cen, Np, g2)  # the step in the filter's coordinates
                 if stopping == 2:
                     for i in range(n):
                         size = max(size, abs(dx[i]) / math.sqrt(P[b, i, i]))
@@ -546,18 +1019,27 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             if small or (control == 1 and not accepted) or it == max_iter - 1:
                 break
             if not have_jac:
-                _lower_mul(L, z, e)
+                _sqrt_mul(L, z, e, cen, Np, g2)
                 _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval,
                             xt, D, dD)  # fmt: skip
             _masked(hx, Hval, yb, mk)
-            _whiten(hx, Hval, cols, yb, rws, Laug, Hw, rw, A)
-            _mul_t(Hw, rw, g)
-        if failed or not (fresh or _cholesky(Afin, LA)):
+            if cen:
+                _centered_model_rows(Hval, cols, Hc, cc, n, Np)
+                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+            else:
+                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+        if failed or not (fresh or _factor(Afin, LA, rev)):
             ok[b] = False
             continue
-        _lower_mul(L, z, e)
+        _sqrt_mul(L, z, e, cen, Np, g2)
         _reset(chart, xp, e, xo[b])
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
-        _posterior_covariance(L, LA, Po[b], T)
+        if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T
+            _posterior_covariance_rev(L, LA, A, T)
+            _uncenter_cov(A, Po[b], T, Np)
+        elif rev:
+            _posterior_covariance_rev(L, LA, Po[b], T)
+        else:
+            _posterior_covariance(L, LA, Po[b], T)
     return xo, Po, nu, nis, its, conv, ok
