@@ -24,13 +24,15 @@ A measurement row with ``mask = False`` (a feature dropped by the tracker or rej
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
 ``h = y`` and ``H = 0`` on that row.
 
-Past ``SOLVE_BLOCK`` (32) columns the update exploits more structure (issue 14, growth with
+Past ``LARGE_N`` (64) columns the update exploits more structure (issue 14, growth with
 the number of points): the rows of ``Hw`` stop where ``L`` is zero (``_whiten_staircase``: the
 Gram product by strips over the rows that reach them), the aligned chart is whitened in
 centered point coordinates (``_center_cov``: the points' mean and their deviations, so that
 the unmeasured centroid does not cancel in the product), and ``A`` is factorized in reverse
 order (``_factor``) so that ``P+ = L A^-1 L^T = M M^T`` with ``M`` lower triangular
-(``_posterior_covariance_rev``). Up to 32 columns (case B's 29) the kernels are as before.
+(``_posterior_covariance_rev``). Up to 64 columns (case B's 29; 20 points) the kernels are as
+before: there the extra passes cost more than they save (measured: 13 points even, 10 points
+8 % slower, 20 points 5-10 % faster, 40 points 15-25 %).
 
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
@@ -52,7 +54,9 @@ _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
 CONTROL = {"none": 0, "line_search": 1, "levenberg_marquardt": 2}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
+LARGE_N = 64  # past this size the update takes its large-n path (module docstring); measured crossover n ~ 60
 STAIR_BLOCK = 16  # the strips of rows of A in _whiten_staircase
+REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 
 
 # LAPACK's dpotrf as Numba's own ``np.linalg.cholesky`` calls it (its C helper resolves scipy's
@@ -275,9 +279,9 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A):
 
 @njit(**_JIT)
 def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi):
-    """``_whiten`` and ``g = Hw^T rw``; past ``SOLVE_BLOCK`` columns by ``_whiten_staircase`` (the same numbers to
+    """``_whiten`` and ``g = Hw^T rw``; past ``LARGE_N`` columns by ``_whiten_staircase`` (the same numbers to
     round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch)."""
-    if Hw.shape[1] <= SOLVE_BLOCK:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
+    if Hw.shape[1] <= LARGE_N:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
         _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A)
         _mul_t(Hw, rw, g)
     else:
@@ -568,12 +572,13 @@ def _posterior_covariance_rev(L, LA, out, W):
     third of the flops of ``_posterior_covariance``'s full ``X``. With ``U = J LA J``:
     ``M J = Q LA^-T``, ``Q = L J``; ``W = (M J)^T`` solves ``LA W = Q^T`` (forward substitution by
     rows, blocked as in ``_posterior_covariance``), and row ``j`` of ``W`` is zero left of column
-    ``n - 1 - j`` (``W[j, i] = M[i, n - 1 - j]``), which the products skip. Then ``out = W^T W``
-    by strips of ``SOLVE_BLOCK`` rows over the rows of ``W`` that reach them (BLAS ``gemm``),
-    lower triangle mirrored: exactly symmetric.
+    ``n - 1 - j`` (``W[j, i] = M[i, n - 1 - j]``), which the products skip: each BLAS ``gemm`` on a
+    block of ``REV_BLOCK`` rows of ``W`` runs over the columns that block reaches. Then
+    ``out = W^T W`` by strips of ``REV_BLOCK`` rows the same way, lower triangle mirrored:
+    exactly symmetric.
     """
     n = L.shape[0]
-    nb = SOLVE_BLOCK
+    nb = REV_BLOCK
     ab = np.empty(3)
     ab[0], ab[1], ab[2] = -1.0, 1.0, 0.0
     for j0 in range(0, n, nb):
@@ -584,24 +589,33 @@ def _posterior_covariance_rev(L, LA, out, W):
                 W[j, i] = 0.0
             for i in range(lo, n):
                 W[j, i] = L[i, lo]
-        if j0 > 0:
-            # W[j0:j1, c0:] -= LA[j0:j1, :j0] W[:j0, c0:], c0 = n - j0 (rows above are zero left of it);
-            # column-major: W^T[c0:, j0:j1] -= W^T[c0:, :j0] LA^T[:j0, j0:j1]
-            c0 = n - j0
-            _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, j0, j1 - j0, j0, ab[0:1].ctypes, W[0, c0:].ctypes, n,
-                    LA[j0, :].ctypes, n, ab[1:2].ctypes, W[j0, c0:].ctypes, n)  # fmt: skip
+        # W[j0:j1] -= LA[j0:j1, k0:k1] W[k0:k1] by blocks of rows k0:k1 above, each over its columns n - k1:
+        # (column-major: W^T[c:, j0:j1] -= W^T[c:, k0:k1] LA^T[k0:k1, j0:j1], c = n - k1)
+        for k0 in range(0, j0, nb):
+            k1 = min(k0 + nb, j0)
+            c = n - k1
+            _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, k1, j1 - j0, k1 - k0, ab[0:1].ctypes, W[k0, c:].ctypes, n,
+                    LA[j0, k0:].ctypes, n, ab[1:2].ctypes, W[j0, c:].ctypes, n)  # fmt: skip
         for j in range(j0, j1):
             lo = n - 1 - j
             _combine(W[j], lo, n, W, LA[j], j0, j, -1.0)
             d = LA[j, j]
             for i in range(lo, n):
                 W[j, i] /= d
-    # out[a0:a1, :a1] = W[r0:, a0:a1]^T W[r0:, :a1], r0 = n - a1 (the rows that reach column a1 - 1)
+    # out[a0:a1, :a1] = sum over the rows r of W that reach column a1 - 1 (r >= n - a1) of W[r, a0:a1]^T W[r, :a1],
+    # by blocks of rows r0:r1, each over the columns n - r1: (the others are zero there)
     for a0 in range(0, n, nb):
         a1 = min(a0 + nb, n)
-        r0 = n - a1
-        _xxgemm(_KIND_D, _NOTRANS, _TRANS, a1, a1 - a0, a1, ab[1:2].ctypes, W[r0, :].ctypes, n, W[r0, a0:].ctypes,
-                n, ab[2:3].ctypes, out[a0, :].ctypes, n)  # fmt: skip
+        for i in range(a0, a1):
+            for j in range(a1):
+                out[i, j] = 0.0
+        r1 = n
+        while r1 > n - a1:
+            r0 = max(r1 - nb, n - a1)
+            c = n - r1
+            _xxgemm(_KIND_D, _NOTRANS, _TRANS, a1 - c, a1 - a0, r1 - r0, ab[1:2].ctypes, W[r0, c:].ctypes, n,
+                    W[r0, a0:].ctypes, n, ab[1:2].ctypes, out[a0, c:].ctypes, n)  # fmt: skip
+            r1 = r0
     _mirror_lower(out)
 
 
@@ -610,7 +624,7 @@ def _posterior_covariance_rev(L, LA, out, W):
 # error (the gauge) is never measured and keeps its prior variance while the deviations shrink. Whitened by the
 # Cholesky factor of P itself, a feature's row is the difference of two large rows (its point's and the mean's);
 # split into a staircase part and the point sums (_whiten_staircase), the Gram product squares that cancellation.
-# Past SOLVE_BLOCK columns the aligned chart is therefore whitened in centered coordinates
+# Past LARGE_N columns the aligned chart is therefore whitened in centered coordinates
 # ``e' = T e``: the common block, then ``e_bar`` (the points' mean error, 3), then ``d_f = e_Pf - e_bar`` for the
 # first N - 1 points, then k: ``P' = T P T^T = L' L'^T`` and ``L = T^-1 L'`` (a square root of ``P``, not
 # triangular). A feature's row then sees its own ``d_f`` (the last point: minus the sum of all ``d``, a virtual
@@ -619,11 +633,14 @@ def _posterior_covariance_rev(L, LA, out, W):
 
 @njit(**_JIT)
 def _center_cov(P, Pc, tmp, N):
-    """``Pc = T P T^T`` (the centered coordinates above; ``tmp`` an ``n x n`` scratch): ``tmp = T P`` by
-    combinations of rows, then each row of ``tmp`` mapped by ``T`` as a vector; lower triangle mirrored."""
+    """``Pc = T P T^T = T (T P)^T`` (``P`` symmetric; the centered coordinates above; ``tmp`` an ``n x n``
+    scratch): two passes of ``_center_rows`` with a transpose between them; lower triangle mirrored."""
     _center_rows(P, tmp, N)
+    _transpose(tmp, Pc)
+    _center_rows(Pc, tmp, N)
     for i in range(P.shape[0]):
-        _center_vec(tmp[i], Pc[i], N)
+        for j in range(i + 1):
+            Pc[i, j] = tmp[i, j]
     _mirror_lower(Pc)
 
 
@@ -631,14 +648,33 @@ def _center_cov(P, Pc, tmp, N):
 def _uncenter_cov(Pc, P, tmp, N):
     """``P = T^-1 Pc T^-T`` (as ``_center_cov``), exactly symmetric."""
     _uncenter_rows(Pc, tmp, N)
-    for i in range(Pc.shape[0]):
-        _uncenter_vec_to(tmp[i], P[i], N)
+    _transpose(tmp, P)
+    _uncenter_rows(P, tmp, N)
+    for i in range(P.shape[0]):
+        for j in range(i + 1):
+            P[i, j] = tmp[i, j]
     _mirror_lower(P)
 
 
 @njit(**_JIT)
+def _transpose(M, out):
+    """``out = M^T`` by 8 x 8 tiles."""
+    n = M.shape[0]
+    for i0 in range(0, n, 8):
+        for j0 in range(0, n, 8):
+            for i in range(i0, min(i0 + 8, n)):
+                for j in range(j0, min(j0 + 8, n)):
+                    out[j, i] = M[i, j]
+
+
+@njit(**_JIT)
 def _center_rows(M, out, N):
-    """``out = T M`` by rows: the points' mean row, then each of the first ``N - 1`` point rows minus it."""
+    """``out = T M`` by rows: the points' mean row, then each of the first ``N - 1`` point rows minus it.
+
+    The mean is a compensated sum (Knuth's TwoSum on each term, branch-free): a point's deviation
+    from the mean is small against the points' common (unmeasured) error, and a plain sum of ``N``
+    rows would lose ~``N`` ulps of the large common part in it. ``out``'s first deviation rows hold
+    the compensations until the mean is final."""
     n, k = M.shape
     p0 = 12
     for i in range(n):
@@ -648,13 +684,19 @@ def _center_rows(M, out, N):
     for a in range(3):
         for j in range(k):
             out[p0 + a, j] = 0.0
+            out[p0 + 3 + a, j] = 0.0
     for f in range(N):
         for a in range(3):
             for j in range(k):
-                out[p0 + a, j] += M[p0 + 3 * f + a, j]
+                t = out[p0 + a, j]
+                v = M[p0 + 3 * f + a, j]
+                u = t + v
+                bp = u - t
+                out[p0 + 3 + a, j] += (t - (u - bp)) + (v - bp)
+                out[p0 + a, j] = u
     for a in range(3):
         for j in range(k):
-            out[p0 + a, j] /= N
+            out[p0 + a, j] = (out[p0 + a, j] + out[p0 + 3 + a, j]) / N
     for f in range(N - 1):
         for a in range(3):
             for j in range(k):
@@ -680,32 +722,6 @@ def _uncenter_rows(M, out, N):
                 d = M[p0 + 3 + 3 * f + a, j]
                 out[p0 + 3 * f + a, j] = d + M[p0 + a, j]
                 out[last + a, j] -= d
-
-
-@njit(**_JIT)
-def _center_vec(v, out, N):
-    """``out = T v`` (``out`` may not be ``v``)."""
-    n = v.shape[0]
-    p0 = 12
-    for i in range(p0):
-        out[i] = v[i]
-    for i in range(p0 + 3 * N, n):
-        out[i] = v[i]
-    m0 = 0.0
-    m1 = 0.0
-    m2 = 0.0
-    for f in range(N):
-        m0 += v[p0 + 3 * f]
-        m1 += v[p0 + 3 * f + 1]
-        m2 += v[p0 + 3 * f + 2]
-    m0 /= N
-    m1 /= N
-    m2 /= N
-    for f in range(N - 1):
-        out[p0 + 3 + 3 * f] = v[p0 + 3 * f] - m0
-        out[p0 + 4 + 3 * f] = v[p0 + 3 * f + 1] - m1
-        out[p0 + 5 + 3 * f] = v[p0 + 3 * f + 2] - m2
-    out[p0], out[p0 + 1], out[p0 + 2] = m0, m1, m2
 
 
 @njit(**_JIT)
@@ -842,8 +858,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     L = Laug[:n]
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
-    rev = n > SOLVE_BLOCK  # A factorized in reverse order (_factor), for P+ by _posterior_covariance_rev
-    cen = chart == 1 and rev  # whitened in the centered point coordinates (above)
+    rev = n > LARGE_N  # A factorized in reverse order (_factor), for P+ by _posterior_covariance_rev
+    cen = chart == 1 and n > LARGE_N  # whitened in the centered point coordinates (above)
     Np = (n - 14) // 3
     g2 = np.empty(n)  # _sqrt_mul's scratch
     Hc = np.zeros((m, NNZ) if cen else (0, NNZ))
@@ -1036,7 +1052,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
         if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T
-            _posterior_covariance_rev(L, LA, A, T)
+            if rev:
+                _posterior_covariance_rev(L, LA, A, T)
+            else:
+                _posterior_covariance(L, LA, A, T)
             _uncenter_cov(A, Po[b], T, Np)
         elif rev:
             _posterior_covariance_rev(L, LA, Po[b], T)
