@@ -55,7 +55,7 @@ STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
 CONTROL = {"none": 0, "line_search": 1, "levenberg_marquardt": 2}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
 LARGE_N = 64  # past this size the update takes its large-n path (module docstring); measured crossover n ~ 60
-STAIR_BLOCK = 16  # the strips of rows of A in _whiten_staircase
+STAIR_BLOCK = 8  # the strips of rows of A in _whiten_staircase
 REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 
 
@@ -90,6 +90,14 @@ def _cholesky(A, L):
             L[i, j] = A[i, j]
         for j in range(i + 1, n):
             L[i, j] = 0.0
+    return _potrf_lower(L)
+
+
+@njit(**_JIT)
+def _potrf_lower(L):
+    """``L`` (its lower triangle, zeros above) factorized in place by LAPACK's ``potrf``: ``_cholesky``'s
+    second half."""
+    n = L.shape[0]
     if n == 0:
         return True
     if L.strides[1] == 8:  # unit-stride rows: in place; a block ``L[:m, :m]``'s row stride is the leading dimension
@@ -547,7 +555,9 @@ def _factor(A, LA, rev):
     for i in range(n):  # (J A J)[i, j] = A[n-1-i, n-1-j] = A[n-1-j, n-1-i]: from the lower triangle of A (j <= i)
         for j in range(i + 1):
             LA[i, j] = A[n - 1 - j, n - 1 - i]
-    return _cholesky(LA, LA)
+        for j in range(i + 1, n):
+            LA[i, j] = 0.0
+    return _potrf_lower(LA)
 
 
 @njit(**_JIT)
@@ -646,13 +656,11 @@ def _center_cov(P, Pc, tmp, N):
 
 @njit(**_JIT)
 def _uncenter_cov(Pc, P, tmp, N):
-    """``P = T^-1 Pc T^-T`` (as ``_center_cov``), exactly symmetric."""
+    """``P = T^-1 Pc T^-T``: ``T^-1`` on the rows, then on each row as a vector (no sums to compensate: the
+    deviations are added to the mean); exactly symmetric."""
     _uncenter_rows(Pc, tmp, N)
-    _transpose(tmp, P)
-    _uncenter_rows(P, tmp, N)
-    for i in range(P.shape[0]):
-        for j in range(i + 1):
-            P[i, j] = tmp[i, j]
+    for i in range(Pc.shape[0]):
+        _uncenter_vec_to(tmp[i], P[i], N)
     _mirror_lower(P)
 
 
