@@ -179,6 +179,83 @@ def test_reverse_factor_solve_and_posterior_covariance(n):
     assert not ku._factor(bad, LA, True)
 
 
+def _centering(N, n):
+    """The aligned chart's centered coordinates as a dense matrix ``T (n x n)``: common block, the points' mean,
+    the first ``N - 1`` points' deviations from it, ``k``."""
+    T = np.eye(n)
+    p0 = 12
+    T[p0 : p0 + 3 * N, p0 : p0 + 3 * N] = 0.0
+    mean = np.kron(np.ones((1, N)) / N, np.eye(3))
+    T[p0 : p0 + 3, p0 : p0 + 3 * N] = mean
+    for f in range(N - 1):
+        T[p0 + 3 + 3 * f : p0 + 6 + 3 * f, p0 : p0 + 3 * N] = -mean
+        T[p0 + 3 + 3 * f : p0 + 6 + 3 * f, p0 + 3 * f : p0 + 3 * f + 3] += np.eye(3)
+    return T
+
+
+@pytest.mark.parametrize("N", [2, 7, 40])
+def test_centered_coordinates_of_the_aligned_chart(N):
+    """``_center_cov`` is ``T P T^T`` (lower triangle; with a common point error 1e4 times the deviations, the
+    deviations' block stays within 2 ulps of P's largest entry, against an extended-precision reference), ``_uncenter_cov`` its inverse (exactly symmetric),
+    ``_uncenter_vec_to`` is ``T^-1 v``; ``_centered_model_rows`` gives ``H' = H_e T^-1`` with the last point's
+    deviations through the virtual columns (``_centered_virtual_rows``: the sum of the other deviations' rows)."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(N)
+    n = 12 + 3 * N + 2
+    T = _centering(N, n)
+    Ti = np.linalg.inv(T)
+    X = rng.standard_normal((n, n))
+    Pd = X @ X.T / n + np.eye(n)  # the deviations ~1
+    G = np.zeros((n, n))
+    G[12 : 12 + 3 * N, 12 : 12 + 3 * N] = 1e8 * np.kron(np.ones((N, N)), np.eye(3))  # a common error of 1e4
+    P = Pd + G
+    Pc, tmp = np.empty((n, n)), np.empty((n, n))
+    ku._center_cov(P, Pc, tmp, N)
+    Tl = T.astype(np.longdouble)  # the reference in extended precision from P as stored (its 1e8 + ~1 entries)
+    ref = (Tl @ P.astype(np.longdouble) @ Tl.T).astype(float)
+    il = np.tril_indices(n)
+    dev = slice(15, 12 + 3 * N)
+    # the deviations' block to within 2 ulps of P's largest entry: the rounding of the mean itself (compensated
+    # sums, not N ulps)
+    np.testing.assert_allclose(Pc[dev, dev], ref[dev, dev], rtol=0, atol=2 * np.finfo(float).eps * np.abs(P).max())
+    np.testing.assert_allclose(Pc[il], ref[il], rtol=0, atol=1e-12 * np.abs(ref).max())
+    back = np.full((n, n), np.nan)
+    Pcs = np.tril(Pc) + np.tril(Pc, -1).T
+    ku._uncenter_cov(Pcs, back, tmp, N)
+    np.testing.assert_allclose(back, Ti @ Pcs @ Ti.T, rtol=0, atol=1e-12 * np.abs(P).max())
+    assert np.array_equal(back, back.T)
+    v = rng.standard_normal(n)
+    out = np.empty(n)
+    ku._uncenter_vec_to(T @ v, out, N)
+    np.testing.assert_allclose(out, v, rtol=0, atol=1e-13)
+    # H' = H_e T^-1 on aligned-chart rows (9 common columns, own point, 3 virtual = every point's sum)
+    _, cols, Hval = _staircase_rows(rng, N, True, ())
+    m = cols.shape[0]
+    Hc, cc = np.zeros_like(Hval), np.zeros_like(cols)
+    ku._centered_model_rows(Hval, cols, Hc, cc, n, N)
+    He = np.zeros((m, n))
+    Hp = np.zeros((m, n))
+    S = np.zeros((3, n))  # the virtual columns of H': the sum of the deviations d_0 .. d_{N-2}
+    for f in range(N - 1):
+        S[:, 15 + 3 * f : 18 + 3 * f] = np.eye(3)
+    for r in range(m):
+        for h, c in zip(Hval[r], cols[r]):
+            if c >= n:
+                He[r, 12 + (c - n) : 12 + 3 * N : 3] += h
+            else:
+                He[r, c] += h
+        for h, c in zip(Hc[r], cc[r]):
+            if c >= n:
+                Hp[r] += h * S[c - n]
+            else:
+                Hp[r, c] += h
+    np.testing.assert_allclose(Hp, He @ Ti, rtol=0, atol=1e-12 * np.abs(He).max())
+    Laug = np.vstack([rng.standard_normal((n, n)), np.zeros((3, n))])
+    ku._centered_virtual_rows(Laug, N)
+    np.testing.assert_allclose(Laug[n:], S @ Laug[:n], rtol=1e-13, atol=1e-13)
+
+
 def _staircase_rows(rng, N, virtual, masked):
     """Row-sparse model rows like the kernels' (``NNZ`` wide): per feature 8 rows on its own point's 3 columns and
     the 12 common ones, or (``virtual``, the aligned chart) the first 9 and the 3 virtual columns ``n .. n+2``; 3

@@ -644,14 +644,11 @@ def _posterior_covariance_rev(L, LA, out, W):
 @njit(**_JIT)
 def _center_cov(P, Pc, tmp, N):
     """``Pc = T P T^T = T (T P)^T`` (``P`` symmetric; the centered coordinates above; ``tmp`` an ``n x n``
-    scratch): two passes of ``_center_rows`` with a transpose between them; lower triangle mirrored."""
-    _center_rows(P, tmp, N)
-    _transpose(tmp, Pc)
-    _center_rows(Pc, tmp, N)
-    for i in range(P.shape[0]):
-        for j in range(i + 1):
-            Pc[i, j] = tmp[i, j]
-    _mirror_lower(Pc)
+    scratch): two passes of ``_center_rows`` with a transpose between them. Symmetric to round-off: its lower
+    triangle is what the Cholesky factorization reads."""
+    _center_rows(P, Pc, N)
+    _transpose(Pc, tmp)
+    _center_rows(tmp, Pc, N)
 
 
 @njit(**_JIT)
@@ -760,10 +757,11 @@ def _centered_virtual_rows(Laug, N):
     n = Laug.shape[1]
     for a in range(3):
         for j in range(n):
-            t = 0.0
-            for f in range(N - 1):
-                t += Laug[15 + 3 * f + a, j]
-            Laug[n + a, j] = t
+            Laug[n + a, j] = 0.0
+    for f in range(N - 1):
+        for a in range(3):
+            for j in range(n):
+                Laug[n + a, j] += Laug[15 + 3 * f + a, j]
 
 
 @njit(**_JIT)
