@@ -196,9 +196,10 @@ def _centering(N, n):
 @pytest.mark.parametrize("N", [2, 7, 40])
 def test_centered_coordinates_of_the_aligned_chart(N):
     """``_center_cov`` is ``T P T^T`` (lower triangle; with a common point error 1e4 times the deviations, the
-    deviations' block stays within 2 ulps of P's largest entry, against an extended-precision reference), ``_uncenter_cov`` its inverse (exactly symmetric),
-    ``_uncenter_vec_to`` is ``T^-1 v``; ``_centered_model_rows`` gives ``H' = H_e T^-1`` with the last point's
-    deviations through the virtual columns (``_centered_virtual_rows``: the sum of the other deviations' rows)."""
+    deviations' block stays within 2 ulps of P's largest entry, against an extended-precision reference),
+    ``_uncenter_cov`` its inverse (exactly symmetric), ``_uncenter_vec_to`` is ``T^-1 v``; ``_centered_model_rows``
+    gives ``H' = H_e T^-1`` with the last point's deviations through the virtual columns
+    (``_centered_virtual_rows``: the sum of the other deviations' rows)."""
     from stereopose_mc.core.kernels import update as ku
 
     rng = np.random.default_rng(N)
