@@ -673,6 +673,15 @@ def _transpose(M, out):
 
 
 @njit(**_JIT)
+def _copy_other_rows(M, out, N):
+    """``out[i] = M[i]`` for the rows that ``T`` leaves alone: the common block (12) and ``k``."""
+    for i in range(M.shape[0]):
+        if i < 12 or i >= 12 + 3 * N:
+            for j in range(M.shape[1]):
+                out[i, j] = M[i, j]
+
+
+@njit(**_JIT)
 def _center_rows(M, out, N):
     """``out = T M`` by rows: the points' mean row, then each of the first ``N - 1`` point rows minus it.
 
@@ -680,12 +689,9 @@ def _center_rows(M, out, N):
     from the mean is small against the points' common (unmeasured) error, and a plain sum of ``N``
     rows would lose ~``N`` ulps of the large common part in it. ``out``'s first deviation rows hold
     the compensations until the mean is final."""
-    n, k = M.shape
+    k = M.shape[1]
     p0 = 12
-    for i in range(n):
-        if i < p0 or i >= p0 + 3 * N:
-            for j in range(k):
-                out[i, j] = M[i, j]
+    _copy_other_rows(M, out, N)
     for a in range(3):
         for j in range(k):
             out[p0 + a, j] = 0.0
@@ -711,13 +717,10 @@ def _center_rows(M, out, N):
 @njit(**_JIT)
 def _uncenter_rows(M, out, N):
     """``out = T^-1 M`` by rows: ``e_Pf = d_f + e_bar`` (``f < N - 1``), ``e_P(N-1) = e_bar - sum_f d_f``."""
-    n, k = M.shape
+    k = M.shape[1]
     p0 = 12
     last = p0 + 3 * (N - 1)
-    for i in range(n):
-        if i < p0 or i >= p0 + 3 * N:
-            for j in range(k):
-                out[i, j] = M[i, j]
+    _copy_other_rows(M, out, N)
     for a in range(3):
         for j in range(k):
             out[last + a, j] = M[p0 + a, j]
