@@ -144,6 +144,29 @@ def test_posterior_covariance_blocked_substitution(n):
     assert np.array_equal(out, out.T)
 
 
+@pytest.mark.parametrize("n", [1, 3, 70, 134])
+def test_cholesky_on_the_transposed_layout(n):
+    """``_cholesky_t`` (``potrf`` with ``uplo = "L"`` on the transposed copy) equals numpy's factor of ``A``, or
+    with ``rev`` of ``J A J``, reading only the lower triangle of ``A``; False on a matrix that is not positive
+    definite or has a non-finite pivot."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(300 + n)
+    M = rng.standard_normal((n, n))
+    A = M @ M.T + n * np.eye(n)
+    Alow = np.tril(A) + np.triu(np.full((n, n), np.nan), 1)  # the upper triangle must not be read
+    for rev, ref in ((False, np.linalg.cholesky(A)), (True, np.linalg.cholesky(A[::-1, ::-1]))):
+        L = np.full((n, n), np.nan)
+        assert ku._cholesky_t(Alow, L, rev)
+        np.testing.assert_allclose(L, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+        assert np.all(np.triu(L, 1) == 0.0)
+    bad = Alow.copy()
+    bad[n - 1, n - 1] = -1.0
+    assert not ku._cholesky_t(bad, L, False)
+    bad[n - 1, n - 1] = np.nan
+    assert not ku._cholesky_t(bad, L, False)
+
+
 @pytest.mark.parametrize("n", [1, 5, 32, 33, 70, 134])
 def test_reverse_factor_solve_and_posterior_covariance(n):
     """``_factor(A, LA, rev=True)`` is the Cholesky factor of ``A`` in reverse order (``A = U U^T``, ``U = J LA J``
