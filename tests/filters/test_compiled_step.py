@@ -26,6 +26,7 @@ iteration counts, and to differ by no more than that numpy-vs-numpy round-off sp
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import numpy as np
 import pytest
@@ -38,7 +39,11 @@ from stereopose_mc.mc.trial import Bounds, run_chunk
 from stereopose_mc.sim import measurements as meas
 from stereopose_mc.sim.truth import simulate_truth
 
-from scenarios import scenario_dict
+from scenarios import ROOT, scenario_dict
+
+if str(ROOT) not in sys.path:  # the benchmark's scaling scenarios' points (as tests/test_benchmarks_smoke.py)
+    sys.path.insert(0, str(ROOT))
+from benchmarks.common import sphere_points  # noqa: E402
 
 
 def _prepared(case="caseB", error_state="full", **overrides):
@@ -138,8 +143,8 @@ def test_every_step_of_whole_trials_with_20_points_agrees(monkeypatch, error_sta
 
     both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
-    scn, setup, truth, exact, filters = _prepared(error_state=error_state, target={"feature_points_m": _sphere(20)},
-                                                  **FREE)  # fmt: skip
+    points = sphere_points(20, 1.5).tolist()
+    scn, setup, truth, exact, filters = _prepared(error_state=error_state, target={"feature_points_m": points}, **FREE)
     assert setup.x0.size - (error_state != "full") > ku.LARGE_N
     run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="both")
     _steps_agree(both, filters)
@@ -303,15 +308,6 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
-def _sphere(N, radius=1.5):
-    """``N`` feature points spread over a sphere (Fibonacci lattice), as the benchmark's scaling scenarios."""
-    i = np.arange(N) + 0.5
-    z = 1.0 - 2.0 * i / N
-    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
-    r = np.sqrt(1.0 - z * z)
-    return (radius * np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)).tolist()
-
-
 def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control="line_search", N=None, full=False):
     """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R.
 
@@ -319,7 +315,7 @@ def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control=
     (``x = x_true + L z``, quaternion renormalized) for the full-state filter."""
     from stereopose_mc.filters import relnav
 
-    more = {} if N is None else {"target": {"feature_points_m": _sphere(N)}}
+    more = {} if N is None else {"target": {"feature_points_m": sphere_points(N, 1.5).tolist()}}
     scn, setup, truth, exact, fss = _prepared(error_state="full" if full else "aligned", **SHORT, **more)
     loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
     fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
@@ -390,9 +386,10 @@ def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error
     """With 20 and 30 feature points (``n`` = 74-75 and 104-105 > 64) the kernels take the large-``n`` path: the
     staircase Gram product (``_whiten_staircase``), in the aligned chart in centered point coordinates, and ``A``
     factorized in reverse order for ``P+`` (``_posterior_covariance_rev``). One well-conditioned update in each
-    chart (feature mask and gate, EKF or IEKF) equals the numpy update to round-off: 1e-10 of sigma and of the covariance in the error states; in the full
-    state (whose prior includes the quaternion's norm direction) 1e-9, or 5x numpy's own change when its prior
-    moves by one ulp, whichever is larger (as the whole-trial tests' first updates)."""
+    chart (feature mask and gate, EKF or IEKF) equals the numpy update to round-off: 1e-10 of sigma and of the
+    covariance in the error states; in the full state (whose prior includes the quaternion's norm direction)
+    1e-9, or 5x numpy's own change when its prior moves by one ulp, whichever is larger (as the whole-trial
+    tests' first updates)."""
     from stereopose_mc.core.kernels import update as ku
     from stereopose_mc.filters import compiled, estimators
 

@@ -90,21 +90,21 @@ def _cholesky(A, L):
             L[i, j] = A[i, j]
         for j in range(i + 1, n):
             L[i, j] = 0.0
-    return _potrf_lower(L)
+    return _potrf(L, _UPLO_U)
 
 
 @njit(**_JIT)
-def _potrf_lower(L):
-    """``L`` (its lower triangle, zeros above) factorized in place by LAPACK's ``potrf``: ``_cholesky``'s
-    second half."""
+def _potrf(L, uplo):
+    """LAPACK's ``potrf`` on ``L`` in place, as column-major memory (``uplo``: which triangle of it holds the
+    matrix, the other being zeros); False if it fails or a pivot is not finite."""
     n = L.shape[0]
     if n == 0:
         return True
     if L.strides[1] == 8:  # unit-stride rows: in place; a block ``L[:m, :m]``'s row stride is the leading dimension
-        info = _xxpotrf(_KIND_D, _UPLO_U, n, L.ctypes, L.strides[0] // 8)
+        info = _xxpotrf(_KIND_D, uplo, n, L.ctypes, L.strides[0] // 8)
     else:  # (never in these kernels) a contiguous copy; no recursive call: a cached recursion does not link
         Lc = np.ascontiguousarray(L)
-        info = _xxpotrf(_KIND_D, _UPLO_U, n, Lc.ctypes, n)
+        info = _xxpotrf(_KIND_D, uplo, n, Lc.ctypes, n)
         L[:, :] = Lc
     if info != 0:
         return False
@@ -132,18 +132,12 @@ def _cholesky_t(A, L, rev):
         else:
             for j in range(i, n):
                 L[i, j] = A[j, i]
-    if n == 0:
-        return True
-    info = _xxpotrf(_KIND_D, _UPLO_L, n, L.ctypes, L.strides[0] // 8)
-    if info != 0:
+    if not _potrf(L, _UPLO_L):
         return False
     for i in range(n):
         for j in range(i + 1, n):
             L[j, i] = L[i, j]
             L[i, j] = 0.0
-    for i in range(n):
-        if not math.isfinite(L[i, i]):
-            return False
     return True
 
 
@@ -671,10 +665,10 @@ def _posterior_covariance_rev(L, LA, out, W):
 @njit(**_JIT)
 def _center_cov(P, Pc, tmp, N):
     """``Pc = T P T^T = T (T P)^T`` (``P`` symmetric; the centered coordinates above; ``tmp`` an ``n x n``
-    scratch): two passes of ``_center_rows`` with a transpose between them. Symmetric to round-off: its lower
+    scratch): two passes of ``_center_rows`` with a transposed copy between them. Symmetric to round-off: its lower
     triangle is what the Cholesky factorization reads."""
     _center_rows(P, Pc, N)
-    _transpose(Pc, tmp)
+    tmp[:, :] = Pc.T
     _center_rows(tmp, Pc, N)
 
 
@@ -686,17 +680,6 @@ def _uncenter_cov(Pc, P, tmp, N):
     for i in range(Pc.shape[0]):
         _uncenter_vec_to(tmp[i], P[i], N)
     _mirror_lower(P)
-
-
-@njit(**_JIT)
-def _transpose(M, out):
-    """``out = M^T`` by 8 x 8 tiles."""
-    n = M.shape[0]
-    for i0 in range(0, n, 8):
-        for j0 in range(0, n, 8):
-            for i in range(i0, min(i0 + 8, n)):
-                for j in range(j0, min(j0 + 8, n)):
-                    out[j, i] = M[i, j]
 
 
 @njit(**_JIT)
