@@ -78,6 +78,16 @@ def errors(x_hat: Array, x_true: Array) -> Array:
     )
 
 
+def errors_of(x_hat: Array, x_true: Array, kernels: str = "numpy") -> Array:
+    """``errors`` (``(B, 6)``, ``x_hat (B, n)``) on the ``kernels`` path: numpy, or the compiled
+    ``core.kernels.consistency.errors`` (the same numbers: tests/core/test_kernels_consistency.py)."""
+    if kernels == "compiled":
+        from ..core.kernels import consistency
+
+        return consistency.errors(x_hat, x_true)
+    return errors(x_hat, x_true)
+
+
 def state_error(x_hat: Array, x_true: Array) -> Array:
     """``x_hat - x_true`` with the true quaternion's sign aligned to the estimate's."""
     xt = np.broadcast_to(x_true, x_hat.shape).copy()
@@ -132,11 +142,15 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = No
     """
     B = x.shape[0]
     reasons = [""] * B
-    finite = np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-1, -2))
     if pd is None:
+        finite = np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-1, -2))
         pd = np.zeros(B, bool)
         if finite.any():
             pd[finite] = positive_definite(P[finite])
+    else:  # a positive definite P was finite, with a finite x: only the others are read again
+        finite = pd.copy()
+        rest = np.flatnonzero(~pd)
+        finite[rest] = np.isfinite(x[rest]).all(axis=-1) & np.isfinite(P[rest]).all(axis=(-1, -2))
     lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
     over = err > lim
     names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
@@ -182,7 +196,7 @@ def run_filter(
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     P = estimators.initial_covariance(x, P, fs)
-    err[:, 0] = errors(x, true_state(truth.x, 0, np.arange(B)))
+    err[:, 0] = errors_of(x, true_state(truth.x, 0, np.arange(B)), kernels)
     parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
     _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state, kernels)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
@@ -198,8 +212,9 @@ def run_filter(
             break
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
+        every = active.size == B  # no trial lost yet: the state arrays themselves, no gather and scatter
         with np.errstate(all="ignore"):
-            xa, Pa = stepper.predict(x[active], P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = stepper.predict(x if every else x[active], P if every else P[active], truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -216,14 +231,17 @@ def run_filter(
         with np.errstate(all="ignore"):
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, stepper.update)
             x_true_k = true_state(truth.x, k, active)
-            e = errors(u.x, x_true_k)
+            e = errors_of(u.x, x_true_k, kernels)
             try:
                 v, pd = nees_and_pd(u.x, u.P, x_true_k, fs.error_state, kernels)
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)
         bad = [f or b for f, b in zip(failed, bad)]
-        x[active], P[active] = u.x, u.P
+        if every:  # the update's own (new) arrays: predict and update never return or keep their inputs
+            x, P = u.x, u.P
+        else:
+            x[active], P[active] = u.x, u.P
         w_hist = np.concatenate([w_hist[:, 1:], x[:, None, st.OMEGA]], axis=1)  # push the posterior at t_k
         v_hist = np.concatenate([v_hist[:, 1:], _omega_var(P)[:, None]], axis=1)
         err[active, k] = e
@@ -297,32 +315,36 @@ def step_functions(kernels: str):
     raise ValueError(f"unknown kernels {kernels!r} (expected one of {', '.join(KERNELS)})")
 
 
-def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update):
+def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update, failed=None):
     """The batched update; if linear algebra fails for the batch, on halves of it down to single trials.
 
     Returns the update and, per trial, the failure reason ('' when it went through).
     A trial whose own update fails gets NaN state and covariance. Trials are independent
     in every kernel, so a trial's result does not depend on the sub-batch it ran in;
     bisection costs ``O(log B)`` extra calls per failing trial instead of ``B``.
+    ``failed``: the error ``update`` already raised on exactly this batch (it is split without
+    a second try).
     """
-    try:
-        return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
-    except np.linalg.LinAlgError as exc:
-        bad = getattr(exc, "bad", None)  # filters.compiled.PartialUpdateError: only ``bad`` is left to do
-        if bad is not None:
-            from ..filters.compiled import patch
+    if failed is None:
+        try:
+            return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
+        except np.linalg.LinAlgError as exc:
+            bad = getattr(exc, "bad", None)  # filters.compiled.PartialUpdateError: only ``bad`` is left to do
+            if bad is not None:  # numpy's update has failed on ``bad`` as one batch already
+                from ..filters.compiled import patch
 
-            sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update)
-            reasons = [""] * rows.size
-            for i, r in zip(np.flatnonzero(bad).tolist(), why):
-                reasons[i] = r
-            return patch(exc.update, bad, sub), reasons
-        if rows.size == 1:
-            n, ne, m = xa.shape[-1], Pa.shape[-1], step.y.shape[-1]
-            nan = relnav.GatedUpdate(np.full((1, n), np.nan), np.full((1, ne, ne), np.nan), np.full((1, m), np.nan),
-                                     np.full(1, np.nan), np.zeros(1, int), np.zeros(1, bool), np.zeros(1, int),
-                                     np.zeros(1, int))  # fmt: skip
-            return nan, [f"linear algebra failure in the update: {exc}"]
+                sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update, exc)
+                reasons = [""] * rows.size
+                for i, r in zip(np.flatnonzero(bad).tolist(), why):
+                    reasons[i] = r
+                return patch(exc.update, bad, sub), reasons
+            failed = exc
+    if rows.size == 1:
+        n, ne, m = xa.shape[-1], Pa.shape[-1], step.y.shape[-1]
+        nan = relnav.GatedUpdate(np.full((1, n), np.nan), np.full((1, ne, ne), np.nan), np.full((1, m), np.nan),
+                                 np.full(1, np.nan), np.zeros(1, int), np.zeros(1, bool), np.zeros(1, int),
+                                 np.zeros(1, int))  # fmt: skip
+        return nan, [f"linear algebra failure in the update: {failed}"]
     h = rows.size // 2
     (u1, r1), (u2, r2) = (_robust_update(xa[sl], Pa[sl], step, rows[sl], fs, setup, update)
                           for sl in (slice(0, h), slice(h, None)))  # fmt: skip

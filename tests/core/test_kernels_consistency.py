@@ -116,3 +116,70 @@ def test_attitude_chart_covariance_is_mapped_like_the_numpy_path():
     np.testing.assert_array_equal(eng["nees"], got["nees"])
     P[3] = -P[3]
     assert not kc.nees_and_pd(xh, P, xt, attitude=True)[1][3]
+
+
+@pytest.mark.parametrize("N", [1, 3, 5, 20])
+def test_error_map_from_its_non_zeros_equals_the_dense_product(N):
+    """``aligned._apply_error_map`` (``T src`` from the non-zeros of ``T``, the point rows summed once) against
+    numpy's ``aligned.error_map(x) @ src``, for the ``n`` and ``n - 1`` wide matrices it is given; and
+    ``consistency._map_full`` (``T P T^T``) against the dense triple product, exactly symmetric."""
+    from stereopose_mc.core.kernels import aligned as ka
+
+    xh, _, _ = _case(6, N)
+    n = xh.shape[-1]
+    T = aligned.error_map(xh)
+    Tm, Sp = np.empty((n - 1, n)), np.empty((3, n))
+    for b in range(len(xh)):
+        ka._error_map(xh[b], Tm)
+        np.testing.assert_allclose(Tm, T[b], rtol=1e-14, atol=1e-15)
+        for m in (n, n - 1):
+            src = RNG.standard_normal((n, m)) * np.logspace(-3, 3, m)
+            dst = np.empty((n - 1, m))
+            ka._apply_error_map(Tm, N, src, dst, Sp[:, :m])
+            want = T[b] @ src
+            assert np.max(np.abs(dst - want) / np.abs(want).max(axis=0)) < 1e-14
+        A = RNG.standard_normal((n, n))
+        P = A @ A.T
+        Pa = np.empty((n - 1, n - 1))
+        kc._map_full(xh[b], P, Tm, np.empty((n - 1, n)), np.empty((n, n - 1)), Pa, Sp)
+        want = T[b] @ P @ T[b].T
+        d = np.sqrt(np.diag(want))
+        assert np.max(np.abs(Pa - want) / np.outer(d, d)) < 1e-14
+        np.testing.assert_array_equal(Pa, Pa.T)
+
+
+@pytest.mark.parametrize("N", [1, 2, 5, 8])
+def test_gauge_columns_are_solved_like_a_triangular_solve(N):
+    """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, against
+    scipy's triangular solve; zero above the points' rows."""
+    from scipy.linalg import solve_triangular
+
+    ne = 14 + 3 * N
+    A = RNG.standard_normal((ne, ne))
+    L = np.linalg.cholesky(A @ A.T + ne * np.eye(ne))
+    G = np.zeros((ne, 3))
+    G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1))
+    U = np.full((3, ne), np.nan)
+    kc._gauge_forward(L, U, N)
+    want = solve_triangular(L, G, lower=True).T
+    np.testing.assert_allclose(U, want, rtol=1e-13, atol=1e-15)
+    assert np.all(U[:, :12] == 0.0)
+
+
+def test_compiled_errors_equal_the_numpy_errors():
+    """``consistency.errors`` (the engine's six errors on the compiled path) against ``mc.trial.errors``: the same
+    numbers (to the last bit or two), a shared truth broadcast, NaN where the estimate is not finite."""
+    from stereopose_mc.mc import trial
+
+    for N in (1, 5, 20):
+        xh, _, xt = _case(50, N)
+        xh[:, 9:13] *= 1.0 + 0.01 * RNG.standard_normal((50, 1))  # not unit quaternions: both normalize
+        xh[3, 0] = np.nan
+        xh[4, 9] = np.inf
+        with np.errstate(invalid="ignore"):  # numpy's normalization of the infinite quaternion
+            got, want, one = kc.errors(xh, xt), trial.errors(xh, xt), trial.errors(xh, xt[0])
+        assert got.shape == (50, 6)
+        np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+        assert np.isnan(got[3, 0]) and np.isfinite(got[3, 1:]).all() and np.isnan(got[4, 3])
+        np.testing.assert_allclose(kc.errors(xh, xt[0]), one, rtol=1e-14, atol=0)
+        assert np.nanmax(got[:, 3]) > 1.0  # degrees: the attitude errors are not all tiny

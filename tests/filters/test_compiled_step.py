@@ -467,7 +467,19 @@ def test_a_partial_failure_is_bisected_alone_with_the_same_results():
         except np.linalg.LinAlgError as exc:
             raise np.linalg.LinAlgError(str(exc)) from None
 
-    u, why = _robust_update(x, P, step, rows, fs, setup, compiled.update)
+    sizes = []
+    numpy_update = compiled.estimators.update
+
+    def counted(x, *args):
+        sizes.append(len(x))
+        return numpy_update(x, *args)
+
+    compiled.estimators.update = counted
+    try:
+        u, why = _robust_update(x, P, step, rows, fs, setup, compiled.update)
+    finally:
+        compiled.estimators.update = numpy_update
+    assert sizes == [2, 1, 1]  # numpy's update on the two failed trials once, then on each alone: no second try
     v, why_v = _robust_update(x, P, step, rows, fs, setup, whole_batch_bisection)
     assert why == why_v and [bool(r) for r in why] == [False, False, True, False, True, False]
     assert why[2].startswith("linear algebra failure in the update")

@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
-from .aligned import _error_map, _local, _qmul
+from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .model import _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
 
@@ -121,6 +121,34 @@ def _put(cnt, cols, vals, r, c, v):
 
 
 @njit(**_JIT)
+def _gauge_forward(L, U, N):
+    """``U[j] = L^-1 G_j`` for the 3 gauge columns at once (``G_j``: 1 on every point's row ``12 + 3 i + j``).
+
+    ``G``, hence ``U``, is zero above the points' rows (12): forward substitution from there,
+    the three right-hand sides in one pass over ``L`` (three independent sums per row).
+    """
+    ne = L.shape[0]
+    for j in range(3):
+        for i in range(12):
+            U[j, i] = 0.0
+    for i in range(12, ne):
+        j = (i - 12) % 3
+        p = i < 12 + 3 * N  # a point's row: G_j is 1 there for j = (i - 12) % 3
+        s0 = 1.0 if p and j == 0 else 0.0
+        s1 = 1.0 if p and j == 1 else 0.0
+        s2 = 1.0 if p and j == 2 else 0.0
+        for k in range(12, i):
+            c = L[i, k]
+            s0 -= c * U[0, k]
+            s1 -= c * U[1, k]
+            s2 -= c * U[2, k]
+        d = L[i, i]
+        U[0, i] = s0 / d
+        U[1, i] = s1 / d
+        U[2, i] = s2 / d
+
+
+@njit(**_JIT)
 def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
     n = xh.shape[0]
     ne = n - 1
@@ -137,12 +165,8 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
     # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
     # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
     # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
-    for j in range(3):  # G's columns, hence U's, are zero above the points' rows (12): solved from there
-        for i in range(ne):
-            u[i] = 0.0
-        for i in range(N):
-            u[12 + 3 * i + j] = 1.0
-        _forward(L, u, U[j], 12)
+    _gauge_forward(L, U, N)
+    for j in range(3):
         for k in range(j):
             s = _dot_row(U, k, U[j], 12, ne)
             for i in range(12, ne):
@@ -222,6 +246,58 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
 
 
 @njit(**_JIT)
+def _map_full(x, P, Tm, TP, Pt, Pa, Sp):
+    """``Pa = T P T^T`` (lower triangle mirrored), ``T = aligned.error_map(x)``: ``TP = T P``, ``Pa = T (TP)^T``
+    (``P`` symmetric) by ``_apply_error_map``, ``Pt`` the transposed scratch (``n x n-1``)."""
+    N = (x.shape[0] - 15) // 3
+    _error_map(x, Tm)
+    _apply_error_map(Tm, N, P, TP, Sp)
+    Pt[:, :] = TP.T
+    _apply_error_map(Tm, N, Pt, Pa, Sp)
+    _mirror_lower(Pa)
+
+
+@njit(**_JIT)
+def errors_batch(x_hat, x_true):
+    """The six errors ``(B, 6)`` of ``mc.trial.errors`` (m, m/s, deg/s, deg, -, -); ``x_true (B, n)``.
+
+    ``|d rho|``, ``|d rho_dot|``, ``|d omega|``, the attitude error ``2 atan2(|vec q_e|, |q_e,0|)``,
+    ``q_e = q_true/|q_true| (x) (q_hat/|q_hat|)^*`` (``quaternion.error_angle``) and ``|d k1|``,
+    ``|d k2|``, in the order of numpy's reductions (the same numbers to the last bit or two).
+    """
+    B, n = x_hat.shape
+    out = np.empty((B, 6))
+    rad = 180.0 / math.pi
+    for t in range(B):
+        xh, xt = x_hat[t], x_true[t]
+        for b in range(3):
+            s = 0.0
+            for j in range(3 * b, 3 * b + 3):
+                d = xh[j] - xt[j]
+                s += d * d
+            out[t, b] = math.sqrt(s)
+        out[t, 2] *= rad
+        nt = math.sqrt(xt[9] * xt[9] + xt[10] * xt[10] + xt[11] * xt[11] + xt[12] * xt[12])
+        nh = math.sqrt(xh[9] * xh[9] + xh[10] * xh[10] + xh[11] * xh[11] + xh[12] * xh[12])
+        p0, p1, p2, p3 = xt[9] / nt, xt[10] / nt, xt[11] / nt, xt[12] / nt
+        q0, q1, q2, q3 = xh[9] / nh, -(xh[10] / nh), -(xh[11] / nh), -(xh[12] / nh)
+        e0 = p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3
+        e1 = p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2
+        e2 = p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1
+        e3 = p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0
+        out[t, 3] = 2.0 * math.atan2(math.sqrt(e1 * e1 + e2 * e2 + e3 * e3), abs(e0)) * rad
+        out[t, 4] = abs(xh[n - 2] - xt[n - 2])
+        out[t, 5] = abs(xh[n - 1] - xt[n - 1])
+    return out
+
+
+def errors(x_hat: np.ndarray, x_true: np.ndarray) -> np.ndarray:
+    """``mc.trial.errors`` of ``x_hat (B, n)`` against ``x_true (n,)`` or ``(B, n)`` on the compiled kernel."""
+    x_hat = _writable(x_hat)
+    return errors_batch(x_hat, _writable(np.broadcast_to(x_true, x_hat.shape)))
+
+
+@njit(**_JIT)
 def nees_batch(x_hat, P, x_true, attitude):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
@@ -247,6 +323,8 @@ def nees_batch(x_hat, P, x_true, attitude):
     Mi = np.empty((ne, ne))
     e0 = np.zeros(ne)
     TP = np.empty((ne, n))
+    Pt = np.empty((n, ne))
+    Sm = np.empty((3, n))  # the map's point sums (rows of P: n wide)
     Pa = np.empty((ne, ne))
     Lf = np.empty((n, n))
     e = np.empty(ne)
@@ -281,16 +359,15 @@ def nees_batch(x_hat, P, x_true, attitude):
         if not ok:
             continue
         if mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
-            _error_map(x_hat[t], Tm)
             if full:
-                np.dot(Tm, P[t], TP)  # BLAS gemm
-                np.dot(TP, Tm.T, Pa)
+                _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
             else:  # M^-1 = T_aligned S_attitude
+                _error_map(x_hat[t], Tm)
                 _att._chart_jacobian(x_hat[t], e0, Sa)
                 np.dot(Tm, Sa, Mi)
                 np.dot(Mi, P[t], C)
                 np.dot(C, Mi.T, Pa)
-            _mirror_lower(Pa)
+                _mirror_lower(Pa)
             _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq,
                  tmp, v3, Sp, Wp)  # fmt: skip
             pd[t] = _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
@@ -306,15 +383,18 @@ def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray, attitude: 
     return nees_and_pd(x_hat, P, x_true, attitude)[0]
 
 
+def _writable(a):
+    """A C-contiguous, writable float64 array: one Numba signature (a read-only view such as ``broadcast_to``'s
+    would be a second compile and load)."""
+    a = np.asarray(a)
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=float, order="C")
+
+
 def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray,
                 attitude: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:  # fmt: skip
     """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
-    def writable(a):  # one Numba signature: a read-only view (broadcast_to) would be a second compile and load
-        a = np.asarray(a)
-        if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
-            return a
-        return np.array(a, dtype=float, order="C")
-
-    x_hat = writable(x_hat)
-    out, pd = nees_batch(x_hat, writable(P), writable(np.broadcast_to(x_true, x_hat.shape)), bool(attitude))
+    x_hat = _writable(x_hat)
+    out, pd = nees_batch(x_hat, _writable(P), _writable(np.broadcast_to(x_true, x_hat.shape)), bool(attitude))
     return {k: out[:, j] for j, k in enumerate(KEYS)}, pd
