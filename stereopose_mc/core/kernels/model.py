@@ -429,27 +429,35 @@ def predict_covariance_batch(P, T, Q):
         cols[j] = j
     cols[13], cols[14] = n - 2, n - 1
     TP = np.empty((13, n))  # T P[c, :]
+    Tt = np.empty((15, 13))  # T^T
+    acc = np.empty(13)
     for b in range(B):
+        # T P[c, :] by scaled rows of P (contiguous, vectorized), not by dot products down its columns
         for i in range(13):
             for j in range(n):
-                s = 0.0
-                for l in range(15):
-                    s += T[b, i, l] * P[b, cols[l], j]
-                TP[i, j] = s
-        for i in range(n):
-            for j in range(n):
-                out[b, i, j] = P[b, i, j]
+                TP[i, j] = 0.0
+            for l in range(15):
+                t = T[b, i, l]
+                Pl = P[b, cols[l]]
+                for j in range(n):
+                    TP[i, j] += t * Pl[j]
+            for l in range(15):
+                Tt[l, i] = T[b, i, l]
+        out[b, :, :] = P[b]
         # rows/cols 0..12 against the rest: (T P)[a, r]; against themselves: (T P)[a, c] T^T
         for i in range(13):
             for j in range(13, n):
                 out[b, i, j] = TP[i, j]
                 out[b, j, i] = TP[i, j]
+            for j in range(13):
+                acc[j] = 0.0
+            for l in range(15):
+                t = TP[i, cols[l]]
+                for j in range(13):
+                    acc[j] += t * Tt[l, j]
             for j in range(i, 13):
-                s = 0.0
-                for l in range(15):
-                    s += TP[i, cols[l]] * T[b, j, l]
-                out[b, i, j] = s
-                out[b, j, i] = s
+                out[b, i, j] = acc[j]
+                out[b, j, i] = acc[j]
         # k rows/cols (n-2, n-1) are not in 0..12: they took (T P)[a, k] above
         for i in range(n):
             out[b, i, i] += Q[b, i]
