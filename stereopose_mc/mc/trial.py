@@ -204,17 +204,21 @@ def run_filter(
     src = alpha_source_of(setup, fs)
     w_hist = np.full((B, src.window, 3), np.nan)
     v_hist = np.full((B, src.window, 3), np.nan)
-    w_hist[:, -1], v_hist[:, -1] = x[:, st.OMEGA], _omega_var(P)
+    w_last, v_last = x[:, st.OMEGA].copy(), _omega_var(P)  # every trial's latest posterior omega, its variance
+    w_hist[:, -1], v_hist[:, -1] = w_last, v_last
     td_state = None
     active = np.arange(B)
+    # The active trials' posteriors, in the order of ``active``: the update's own arrays, kept from step
+    # to step (no gather into and scatter from ``x, P`` at each step); ``x, P`` receive a trial's
+    # posterior when it is lost (frozen there) and the others' at the end.
+    x_act, P_act = x, P
     for k in range(1, K + 1):
         if active.size == 0:
             break
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
-        every = active.size == B  # no trial lost yet: the state arrays themselves, no gather and scatter
         with np.errstate(all="ignore"):
-            xa, Pa = stepper.predict(x if every else x[active], P if every else P[active], truth.t[k - 1], fs, setup)
+            xa, Pa = stepper.predict(x_act, P_act, truth.t[k - 1], fs, setup)
         vis = visible[k]
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
@@ -238,12 +242,10 @@ def run_filter(
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)
         bad = [f or b for f, b in zip(failed, bad)]
-        if every:  # the update's own (new) arrays: predict and update never return or keep their inputs
-            x, P = u.x, u.P
-        else:
-            x[active], P[active] = u.x, u.P
-        w_hist = np.concatenate([w_hist[:, 1:], x[:, None, st.OMEGA]], axis=1)  # push the posterior at t_k
-        v_hist = np.concatenate([v_hist[:, 1:], _omega_var(P)[:, None]], axis=1)
+        x_act, P_act = u.x, u.P
+        w_last[active], v_last[active] = u.x[:, st.OMEGA], _omega_var(u.P)
+        w_hist = np.concatenate([w_hist[:, 1:], w_last[:, None]], axis=1)  # push the posterior at t_k
+        v_hist = np.concatenate([v_hist[:, 1:], v_last[:, None]], axis=1)
         err[active, k] = e
         its[active, k], conv[active, k] = u.iterations, u.converged
         if getattr(u, "features_used", None) is not None:
@@ -275,7 +277,11 @@ def run_filter(
             if bad[j]:
                 div_step[i], reasons[i], keep[j] = k, bad[j], False
                 err[i, k:] = np.nan
+        if not keep.all():  # the lost trials' posteriors stay in x, P; the others go on
+            x[active[~keep]], P[active[~keep]] = x_act[~keep], P_act[~keep]
+            x_act, P_act = x_act[keep], P_act[keep]
         active = active[keep]
+    x[active], P[active] = x_act, P_act
     ks = slice(P.shape[-1] - 2, P.shape[-1])  # k is last in the state and in the error state
     with np.errstate(all="ignore"):
         k_ratio = np.sqrt(np.diagonal(P[:, ks, ks], axis1=-2, axis2=-1) / setup.P0_diag[-2:])
