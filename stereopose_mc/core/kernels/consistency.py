@@ -23,7 +23,11 @@ positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factori
 
 A filter whose covariance is that of the full state or of the attitude error state has it
 mapped to the aligned chart first (``nees_batch``; ``pd`` is then the factorization of the
-``P`` given).
+``P`` given): the full state's as ``T (T P)^T`` from the non-zeros of ``T``
+(``aligned._apply_error_map``, ``_map_full``).
+
+``errors_batch`` (``errors``) is the twin of ``mc.trial.errors``: the six errors the engine
+records at every step, without numpy's per-call cost on small arrays.
 """
 
 from __future__ import annotations
