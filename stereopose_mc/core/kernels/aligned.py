@@ -330,7 +330,6 @@ def _apply_error_map(Tm, N, src, dst, Sp):
                         dst[r, c] += t * src[j, c]
 
 
-
 # --- prediction -----------------------------------------------------------------
 
 
