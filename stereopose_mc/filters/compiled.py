@@ -37,6 +37,7 @@ from ..core.kernels import aligned as ka
 from ..core.kernels import charts as kch
 from ..core.kernels import model as km
 from ..core.kernels import update as ku
+from ..core.kernels import writable as _writable
 from ..core.orbit import leader_kinematics
 from . import estimators, relnav, ukf
 
@@ -63,14 +64,6 @@ def _leader(orbit, t: float, h: float = 0.0, stages: int = 1) -> tuple[Array, Ar
     step, so computed once (``leader_kinematics`` is a Kepler solve in numpy on a few scalars)."""
     lk = leader_kinematics(orbit, t + 0.5 * h * np.arange(stages))
     return tuple(np.ascontiguousarray(v, dtype=float) for v in (lk.r, lk.nu_dot, lk.nu_ddot))
-
-
-def _writable(a: Array) -> Array:
-    """A C-contiguous, writable float64 array (a copy where needed): a read-only view, e.g. ``broadcast_to``'s
-    with one trial, would be a second Numba signature of every kernel it enters (a second compile and load)."""
-    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
-        return a
-    return np.array(a, dtype=float, order="C")
 
 
 def _q_batch(Q: Array, B: int, n: int) -> Array:

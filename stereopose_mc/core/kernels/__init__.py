@@ -12,7 +12,18 @@ three charts; ``core/kernels/consistency.py`` the per-step NEES. ``_cache`` keys
 whole package's source; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``.
 """
 
+import numpy as np
+
 from . import _blas, _cache
 
 _blas.preload()  # SciPy's BLAS/LAPACK tables for Numba, without scipy.linalg's 0.14-0.22 s import
 _cache.install()  # before any kernel module is imported: their @njit(cache=True) pick a locator when decorated
+
+
+def writable(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous, writable float64 array (a copy where needed): a read-only view, e.g. ``broadcast_to``'s
+    with one trial, would be a second Numba signature of every kernel it enters (a second compile and load)."""
+    a = np.asarray(a)
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=float, order="C")

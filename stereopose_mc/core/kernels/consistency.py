@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
+from . import writable as _writable
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .model import _dot, _dot_row, _mirror_lower
 from .update import _cholesky, _cholesky_small, _forward
@@ -385,15 +386,6 @@ def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray, attitude: 
     """``core.aligned.nees_report`` on the compiled kernel (same keys, same values to round-off); ``attitude``:
     ``P`` (``B, n-1, n-1``) is the attitude error state's (``mc.trial.aligned_covariance``)."""
     return nees_and_pd(x_hat, P, x_true, attitude)[0]
-
-
-def _writable(a):
-    """A C-contiguous, writable float64 array: one Numba signature (a read-only view such as ``broadcast_to``'s
-    would be a second compile and load)."""
-    a = np.asarray(a)
-    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
-        return a
-    return np.array(a, dtype=float, order="C")
 
 
 def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray,
