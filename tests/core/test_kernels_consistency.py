@@ -146,6 +146,110 @@ def test_error_map_from_its_non_zeros_equals_the_dense_product(N):
         d = np.sqrt(np.diag(want))
         assert np.max(np.abs(Pa - want) / np.outer(d, d)) < 1e-14
         np.testing.assert_array_equal(Pa, Pa.T)
+        # lower: the lower triangle of the full product, bit for bit, and nothing above it written
+        src = RNG.standard_normal((n, n - 1))
+        full, low = np.empty((n - 1, n - 1)), np.full((n - 1, n - 1), 7.0)
+        ka._apply_error_map(Tm, N, src, full, Sp[:, : n - 1])
+        ka._apply_error_map(Tm, N, src, low, Sp[:, : n - 1], True)
+        np.testing.assert_array_equal(np.tril(low), np.tril(full))
+        assert (low[np.triu_indices(n - 1, 1)] == 7.0).all()
+
+
+def _full_state_case(B, N, rng):
+    xh, _, _ = _case(B, N)
+    n = xh.shape[-1]
+    A = rng.standard_normal((B, n, n))
+    d = np.logspace(-2, 2, n)[rng.permutation(n)]  # standard deviations over four decades, correlated
+    return xh, d[:, None] * (A @ A.transpose(0, 2, 1) / n + 0.1 * np.eye(n)) * d
+
+
+def _schur_pd(x, P):
+    """``consistency._pd_full`` on one trial, from ``_map_full``'s products and the factor of ``T P T^T`` (None when
+    that does not factorize)."""
+    from stereopose_mc.core.kernels import update as ku
+
+    n = x.shape[-1]
+    TP, Pa = np.empty((n - 1, n)), np.empty((n - 1, n - 1))
+    kc._map_full(x, P, np.empty((n - 1, n)), TP, np.empty((n, n - 1)), Pa, np.empty((3, n)))
+    L = np.zeros((n - 1, n - 1))
+    if not ku._cholesky(Pa, L):
+        return None
+    return kc._pd_full(x, P, TP, L, np.empty(n - 1))
+
+
+def _numpy_pd(P):
+    try:
+        np.linalg.cholesky(P)
+        return True
+    except np.linalg.LinAlgError:
+        return False
+
+
+@pytest.mark.parametrize("N", [1, 5, 12])
+def test_full_state_pd_from_the_schur_complement_is_numpys_cholesky(N):
+    """``pd`` of a full-state ``P`` from the factor of ``T P T^T`` and the Schur complement along the quaternion's
+    direction (``_pd_full``): True exactly where numpy's Cholesky of ``P`` goes through, for covariances spread over
+    five decades, then made indefinite in the quaternion's direction alone (which ``T P T^T`` does not see), or in a
+    direction ``T`` does see, or singular along the quaternion, where ``_pd_full`` declines and ``P`` is factorized."""
+    rng = np.random.default_rng(N)
+    xh, P = _full_state_case(8, N, rng)
+    n = xh.shape[-1]
+    for b in range(len(xh)):
+        assert _schur_pd(xh[b], P[b]) is True and _numpy_pd(P[b])
+        t = np.zeros(n)
+        t[9:13] = xh[b, 9:13] / np.linalg.norm(xh[b, 9:13])
+        # minus (s + margin) along t: T P T^T unchanged (T t = 0), the Schur complement negative
+        TP, Pa = np.empty((n - 1, n)), np.empty((n - 1, n - 1))
+        kc._map_full(xh[b], P[b], np.empty((n - 1, n)), TP, np.empty((n, n - 1)), Pa, np.empty((3, n)))
+        s = t @ P[b] @ t - TP @ t @ np.linalg.solve(Pa, TP @ t)
+        np.testing.assert_allclose(aligned.error_map(xh[b : b + 1])[0] @ t, 0.0, atol=1e-14)
+        for scale, want in ((2.0, False), (1.0 - 1e-3, True)):
+            Q = P[b] - scale * s * np.outer(t, t)  # Schur complement (1 - scale) s, t^T Q t = t^T P t - scale s
+            assert _numpy_pd(Q) is want
+            clear = bool((1.0 - scale) * s > kc.PD_MARGIN * (t @ P[b] @ t - scale * s))
+            assert kc._pd_full(xh[b], Q, TP, np.linalg.cholesky(Pa), np.empty(n - 1)) is clear
+            assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == want
+        Q = P[b] - s * np.outer(t, t)  # singular along t: declined, and P's own factorization decides
+        assert kc._pd_full(xh[b], Q, TP, np.linalg.cholesky(Pa), np.empty(n - 1)) is False
+        assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == _numpy_pd(Q)
+        v = rng.standard_normal(n)
+        Q = P[b] - 1e3 * (v @ P[b] @ v) / (v @ v) ** 2 * np.outer(v, v)  # indefinite in a direction T sees too
+        assert not _numpy_pd(Q) and not kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0]
+
+
+def test_the_schur_test_declines_an_ill_conditioned_map():
+    """Factor pivots spread by more than ``PD_PIVOTS``: ``_pd_full`` declines (the factorization of ``T P T^T`` may be
+    round-off's), and ``nees_and_pd`` answers with numpy's Cholesky of ``P``."""
+    rng = np.random.default_rng(3)
+    xh, P = _full_state_case(4, 3, rng)
+    n = xh.shape[-1]
+    S = np.diag(np.r_[np.full(n - 2, 1e8), [1.0, 1.0]])  # k's variance 1e16 below the others
+    for b in range(len(xh)):
+        Q = S @ P[b] @ S
+        assert _schur_pd(xh[b], Q) is False
+        assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == _numpy_pd(Q)
+
+
+def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
+    """The 2 x 2 and 3 x 3 blocks' NEES in scalars (``_mahalanobis_small``) against ``_cholesky_small`` and
+    ``_forward`` on the same block: the same bits, NaN where the block is not positive definite."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(11)
+    for m in (2, 3):
+        for trial in range(300):
+            A = rng.standard_normal((m, m)) * np.logspace(-4, 4, m)[rng.permutation(m)]
+            C = A @ A.T if trial % 3 else A @ A.T - rng.uniform(0, 2) * np.trace(A @ A.T) * np.eye(m) / m
+            e = rng.standard_normal(m) * 10.0 ** rng.uniform(-4, 4)
+            L, w = np.zeros((m, m)), np.empty(m)
+            want = np.nan
+            if ku._cholesky_small(C, L):
+                ku._forward(L, e, w)
+                want = 0.0
+                for i in range(m):  # the general path's order: a running sum of squares
+                    want += w[i] * w[i]
+            got = kc._mahalanobis(e, C, np.zeros((m, m)), np.empty(m))
+            assert got == want or (np.isnan(got) and np.isnan(want)), (m, trial, got, want)
 
 
 @pytest.mark.parametrize("N", [1, 2, 5, 8])

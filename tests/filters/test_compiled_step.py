@@ -512,3 +512,41 @@ def test_a_partial_failure_is_bisected_alone_with_the_same_results():
     for f in dataclasses.fields(u):
         np.testing.assert_array_equal(getattr(u, f.name), getattr(v, f.name), f.name)
     assert np.isnan(u.x[[2, 4]]).all() and np.isfinite(u.x[good]).all()
+
+
+@pytest.mark.parametrize("failing", [[3], [0, 2, 3, 5, 6], list(range(1, 9))])
+def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_results(failing):
+    """Up to ``trial.ALONE`` trials left to numpy's update (after it failed on them as a batch) are updated one by
+    one, a single one not tried twice; more are bisected. Every field and reason is bit for bit that of the
+    bisection of the whole batch, and numpy's update is called ``1 + k`` times for ``1 < k <= ALONE``."""
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc import trial
+
+    x, P, step, fs, setup = _aligned_step("iekf", B=9)
+    P[failing] = -P[failing]
+    rows = np.arange(len(x))
+    sizes = []
+    numpy_update = compiled.estimators.update
+
+    def counted(x, *args):
+        sizes.append(len(x))
+        return numpy_update(x, *args)
+
+    def whole_batch_bisection(*args):
+        try:
+            return compiled.update(*args)
+        except np.linalg.LinAlgError as exc:
+            raise np.linalg.LinAlgError(str(exc)) from None
+
+    compiled.estimators.update = counted
+    try:
+        u, why = trial._robust_update(x, P, step, rows, fs, setup, compiled.update)
+    finally:
+        compiled.estimators.update = numpy_update
+    k = len(failing)
+    expected = [k] + [1] * k if 1 < k <= trial.ALONE else [k]
+    assert sizes == expected if k <= trial.ALONE else sizes[0] == k and len(sizes) > k
+    v, why_v = trial._robust_update(x, P, step, rows, fs, setup, whole_batch_bisection)
+    assert why == why_v and [bool(r) for r in why] == [i in failing for i in rows]
+    for f in dataclasses.fields(u):
+        np.testing.assert_array_equal(getattr(u, f.name), getattr(v, f.name), f.name)

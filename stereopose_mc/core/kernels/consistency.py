@@ -22,9 +22,11 @@ block covariances are solved by the Cholesky of ``core.kernels.update``. A trial
 positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
 
 A filter whose covariance is that of the full state or of the attitude error state has it
-mapped to the aligned chart first (``nees_batch``; ``pd`` is then the factorization of the
-``P`` given): the full state's as ``T (T P)^T`` from the non-zeros of ``T``
-(``aligned._apply_error_map``, ``_map_full``).
+mapped to the aligned chart first (``nees_batch``; ``pd`` is then that of the ``P`` given): the full
+state's as ``T (T P)^T`` from the non-zeros of ``T`` (``aligned._apply_error_map``,
+``_map_full``), its ``pd`` from the factor of ``T P T^T`` and one Schur complement (``_pd_full``;
+``P``'s own factorization only where that cannot tell), the attitude state's ``pd`` by
+factorizing ``P``.
 
 ``errors_batch`` (``errors``) is the twin of ``mc.trial.errors``: the six errors the engine
 records at every step, without numpy's per-call cost on small arrays.
@@ -51,7 +53,13 @@ KEYS = ("nees", "nees_gauge", "nees_rho", "nees_rho_dot", "nees_omega", "nees_at
 
 @njit(**_JIT)
 def _mahalanobis(e, P, L, w):
-    """``e^T P^-1 e`` by Cholesky (``L``, ``w`` scratch; a small block's); NaN if ``P`` is not positive definite."""
+    """``e^T P^-1 e`` by Cholesky (``L``, ``w`` scratch; a small block's); NaN if ``P`` is not positive definite.
+
+    A 2 x 2 or 3 x 3 block (``_mahalanobis_small``) is written out in scalars, with the same
+    operations in the same order as ``_cholesky_small`` and ``_forward``: the same bits.
+    """
+    if P.shape[0] <= 3:
+        return _mahalanobis_small(e, P)
     if not _cholesky_small(P, L):
         return np.nan
     _forward(L, e, w)
@@ -62,21 +70,58 @@ def _mahalanobis(e, P, L, w):
 
 
 @njit(**_JIT)
-def _block(cnt, cols, vals, lo, hi, P, Y, C):
+def _mahalanobis_small(e, P):
+    """``_mahalanobis`` of a 2 x 2 or 3 x 3 block in scalars: ``U = L^T`` row by row (``_cholesky_small``: the
+    pivot row minus the rows above, each divided by the square root of its pivot), then ``w = L^-1 e``."""
+    three = P.shape[0] == 3
+    d = P[0, 0]
+    if not d > 0.0:
+        return np.nan
+    d = math.sqrt(d)
+    u00, u01 = P[0, 0] / d, P[1, 0] / d
+    u02 = P[2, 0] / d if three else 0.0
+    u11 = P[1, 1] + (-u01) * u01
+    u12 = P[2, 1] + (-u01) * u02 if three else 0.0
+    d = u11
+    if not d > 0.0:
+        return np.nan
+    d = math.sqrt(d)
+    u11, u12 = u11 / d, u12 / d
+    w0 = e[0] / u00
+    w1 = (e[1] - u01 * w0) / u11
+    s = 0.0
+    s += w0 * w0
+    s += w1 * w1
+    if three:
+        u22 = P[2, 2] + (-u02) * u02
+        u22 = u22 + (-u12) * u12
+        d = u22
+        if not d > 0.0:
+            return np.nan
+        u22 = u22 / math.sqrt(d)
+        t = e[2] - u02 * w0
+        t -= u12 * w1
+        w2 = t / u22
+        s += w2 * w2
+    return s
+
+
+@njit(**_JIT)
+def _block(cnt, cols, vals, lo, hi, P, Y, C, c0, c1):
     """``C = M[lo:hi] P M[lo:hi]^T`` for the sparse rows of ``M`` (row ``r``: ``cnt[r]`` pairs ``cols, vals``).
 
-    ``Y = M[lo:hi] P`` row by row from the non-zeros, then ``C[a, b] = Y[a] . M[lo + b]``.
+    ``Y = M[lo:hi] P`` row by row from the non-zeros, then ``C[a, b] = Y[a] . M[lo + b]``. ``Y``
+    only on the columns ``c0:c1``, which hold every non-zero of the rows (the others are not read).
     """
-    n = P.shape[0]
     m = hi - lo
     for a in range(m):
         r = lo + a
-        for c in range(n):
+        for c in range(c0, c1):
             Y[a, c] = 0.0
         for j in range(cnt[r]):
             v = vals[r, j]
             k = cols[r, j]
-            for c in range(n):
+            for c in range(c0, c1):
                 Y[a, c] += v * P[k, c]
     _times_rows_t(cnt, cols, vals, lo, hi, Y, C)
 
@@ -95,23 +140,22 @@ def _times_rows_t(cnt, cols, vals, lo, hi, Y, C):
 
 
 @njit(**_JIT)
-def _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp, N):
+def _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp, N, c0, c1):
     """``_block`` for rows whose point columns all carry the same 3 coefficients ``Wp[r - lo]`` (rho, rho_dot).
 
     ``Y[a] = (the row's other non-zeros) P + Wp[a] . Sp``, ``Sp[c] = sum_i P[12 + 3 i + c]`` (the
-    point rows of ``P`` summed once per trial): 3 terms per row instead of ``3N``.
+    point rows of ``P`` summed once per trial): 3 terms per row instead of ``3N``; on the columns ``c0:c1``.
     """
-    n = P.shape[0]
     p0, p1 = 12, 12 + 3 * N
     for a in range(hi - lo):
         r = lo + a
-        for c in range(n):
+        for c in range(c0, c1):
             Y[a, c] = Wp[a, 0] * Sp[0, c] + Wp[a, 1] * Sp[1, c] + Wp[a, 2] * Sp[2, c]
         for j in range(cnt[r]):
             k = cols[r, j]
             if k < p0 or k >= p1:
                 v = vals[r, j]
-                for c in range(n):
+                for c in range(c0, c1):
                     Y[a, c] += v * P[k, c]
     _times_rows_t(cnt, cols, vals, lo, hi, Y, C)
 
@@ -241,11 +285,15 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
     for b in range(6):
         lo = (0, 3, 6, 9, 12, 12 + 3 * N)[b]
         hi = (3, 6, 9, 12, 12 + 3 * N, ne)[b]
+        # the columns of the block's non-zeros: rho (and rho_dot, omega) and the points; omega; delta; delta and
+        # the points; k
+        c0 = (0, 3, 6, 9, 9, 12 + 3 * N)[b]
+        c1 = (12 + 3 * N, 12 + 3 * N, 9, 12, 12 + 3 * N, ne)[b]
         m = hi - lo
         if b < 2:
-            _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N)
+            _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N, c0, c1)
         else:
-            _block(cnt, cols, vals, lo, hi, P, Y, C)
+            _block(cnt, cols, vals, lo, hi, P, Y, C, c0, c1)
         out[2 + b] = _mahalanobis(eps[lo:hi], C[:m, :m], Lb[:m, :m], u)
     return True
 
@@ -258,8 +306,50 @@ def _map_full(x, P, Tm, TP, Pt, Pa, Sp):
     _error_map(x, Tm)
     _apply_error_map(Tm, N, P, TP, Sp)
     Pt[:, :] = TP.T
-    _apply_error_map(Tm, N, Pt, Pa, Sp)
+    _apply_error_map(Tm, N, Pt, Pa, Sp, True)
     _mirror_lower(Pa)
+
+
+PD_MARGIN = 1e-6  # _pd_full: a Schur complement above this fraction of t^T P t is positive beyond round-off
+PD_PIVOTS = 1e6  # _pd_full: the largest pivot of T P T^T's factor over its smallest, at most (the spread of its scales)
+
+
+@njit(**_JIT)
+def _pd_full(x, P, TP, L, b):
+    """Whether the full-state ``P`` is positive definite, from ``_map_full``'s ``TP = T P`` and the Cholesky factor
+    ``L`` of ``T P T^T`` (a factorization that went through); False where it cannot tell.
+
+    ``T`` (``n-1 x n``, full row rank) is zero on the quaternion direction ``t = (0, q/|q|, 0)``
+    (``T t = 0``: the aligned error does not see the quaternion's norm), so ``E = [T; t^T]`` is
+    invertible and ``P`` is positive definite iff ``E P E^T = [[T P T^T, T P t], [t^T P T^T,
+    t^T P t]]`` is: iff ``T P T^T`` is and the Schur complement ``s = t^T P t - |L^-1 T P t|^2 > 0``.
+    One forward substitution instead of a second factorization of ``n x n``.
+
+    Only a clear answer is given: ``s > PD_MARGIN t^T P t``, with the factor's diagonal within a
+    ratio ``PD_PIVOTS`` (``T P T^T``'s own factorization is not round-off's verdict on a matrix
+    that is singular to working precision, as a diverged filter's can be at 1e70). Otherwise
+    False, and the caller factorizes ``P`` itself: the decision of ``numpy.linalg.cholesky``
+    wherever it is a matter of round-off. In case B's FilterPy row, 0.5 % of the trial-steps.
+    """
+    ne = L.shape[0]
+    lo, hi = L[0, 0], L[0, 0]
+    for r in range(1, ne):
+        lo, hi = min(lo, L[r, r]), max(hi, L[r, r])
+    if not hi <= PD_PIVOTS * lo:  # T P T^T too ill-conditioned for its factorization to tell
+        return False
+    qn = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
+    t0, t1, t2, t3 = x[9] / qn, x[10] / qn, x[11] / qn, x[12] / qn
+    tpt = 0.0
+    for i in range(4):
+        ti = (t0, t1, t2, t3)[i]
+        tpt += ti * (P[9 + i, 9] * t0 + P[9 + i, 10] * t1 + P[9 + i, 11] * t2 + P[9 + i, 12] * t3)
+    for r in range(ne):
+        b[r] = TP[r, 9] * t0 + TP[r, 10] * t1 + TP[r, 11] * t2 + TP[r, 12] * t3
+    _forward(L, b, b)
+    s = tpt
+    for r in range(ne):
+        s -= b[r] * b[r]
+    return tpt > 0.0 and s > PD_MARGIN * tpt
 
 
 @njit(**_JIT)
@@ -313,7 +403,7 @@ def nees_batch(x_hat, P, x_true, attitude):
     S_aligned``) with ``M^-1 = T_aligned S_attitude`` at the estimate: for a unit quaternion the
     two charts' maps are exact inverses, so no solve (``mc.trial.aligned_covariance``). ``pd``: the estimate and
     covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
-    went through). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
+    went through, or for the full state ``_pd_full``'s test). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
     covariance is not positive definite.
     """
     B, n = x_hat.shape
@@ -373,9 +463,10 @@ def nees_batch(x_hat, P, x_true, attitude):
                 np.dot(Mi, P[t], C)
                 np.dot(C, Mi.T, Pa)
                 _mirror_lower(Pa)
-            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq,
-                 tmp, v3, Sp, Wp)  # fmt: skip
-            pd[t] = _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
+            one = _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R,
+                       dq, tmp, v3, Sp, Wp)  # fmt: skip
+            # P's own factorization only where the Schur complement cannot tell (L: the factor of Pa)
+            pd[t] = (full and one and _pd_full(x_hat[t], P[t], TP, L, u)) or _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
                          R, dq, tmp, v3, Sp, Wp)  # fmt: skip
