@@ -241,7 +241,8 @@ def run_filter(
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)
-        bad = [f or b for f, b in zip(failed, bad)]
+        if any(failed):
+            bad = [f or b for f, b in zip(failed, bad)]
         x_act, P_act = u.x, u.P
         w_last[active], v_last[active] = u.x[:, st.OMEGA], _omega_var(u.P)
         w_hist = np.concatenate([w_hist[:, 1:], w_last[:, None]], axis=1)  # push the posterior at t_k
@@ -271,16 +272,18 @@ def run_filter(
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
             incons = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio, bounds.nees_factor)
-            bad = [b or c for b, c in zip(bad, incons)]
-        keep = np.ones(active.size, bool)
-        for j, i in enumerate(active):
-            if bad[j]:
-                div_step[i], reasons[i], keep[j] = k, bad[j], False
-                err[i, k:] = np.nan
-        if not keep.all():  # the lost trials' posteriors stay in x, P; the others go on
+            if any(incons):
+                bad = [b or c for b, c in zip(bad, incons)]
+        lost = [j for j, b in enumerate(bad) if b]  # the trials lost at this step (positions in ``active``)
+        if lost:  # their posteriors stay in x, P; the others go on
+            for j in lost:
+                div_step[active[j]], reasons[active[j]] = k, bad[j]
+            err[active[lost], k:] = np.nan
+            keep = np.ones(active.size, bool)
+            keep[lost] = False
             x[active[~keep]], P[active[~keep]] = x_act[~keep], P_act[~keep]
             x_act, P_act = x_act[keep], P_act[keep]
-        active = active[keep]
+            active = active[keep]
     x[active], P[active] = x_act, P_act
     ks = slice(P.shape[-1] - 2, P.shape[-1])  # k is last in the state and in the error state
     with np.errstate(all="ignore"):
