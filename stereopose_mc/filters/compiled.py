@@ -303,12 +303,20 @@ class PartialUpdateError(np.linalg.LinAlgError):
 
 
 def patch(u, bad: Array, v):
-    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields)."""
+    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields).
+
+    Written into ``u``'s own arrays where they can be (the kernels' fresh outputs, which
+    nothing else holds: no copy of a ``(B, n, n)`` covariance per step with a failure);
+    a read-only field (a per-configuration constant that steps share, ``_constants``) is
+    copied first. ``u`` is not to be used after.
+    """
     import dataclasses
 
     out = {}
     for f in dataclasses.fields(u):
-        a = np.array(getattr(u, f.name), copy=True)
+        a = getattr(u, f.name)
+        if not (isinstance(a, np.ndarray) and a.flags.writeable):
+            a = np.array(a, copy=True)
         a[bad] = getattr(v, f.name)
         out[f.name] = a
     return type(u)(**out)

@@ -550,3 +550,29 @@ def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_res
     assert why == why_v and [bool(r) for r in why] == [i in failing for i in rows]
     for f in dataclasses.fields(u):
         np.testing.assert_array_equal(getattr(u, f.name), getattr(v, f.name), f.name)
+
+
+def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
+    """``compiled.patch``: the failed trials' rows from the other update; ``u``'s writable arrays (the kernels'
+    outputs) are written in place, a read-only one (a constant that steps share) is copied and left as it was."""
+    from stereopose_mc.filters import compiled, relnav
+
+    rng = np.random.default_rng(2)
+    B, n, m = 5, 4, 3
+    const = np.zeros(B, int)
+    const.flags.writeable = False
+    u = relnav.GatedUpdate(rng.random((B, n)), rng.random((B, n, n)), rng.random((B, m)), rng.random(B),
+                           np.ones(B, int), np.ones(B, bool), const, np.full(B, 2))  # fmt: skip
+    bad = np.array([False, True, False, False, True])
+    v = relnav.GatedUpdate(np.full((2, n), 7.0), np.full((2, n, n), 8.0), np.full((2, m), 9.0), np.full(2, 3.0),
+                           np.full(2, 4), np.zeros(2, bool), np.full(2, 5), np.full(2, 6))  # fmt: skip
+    before = {f: np.array(getattr(u, f), copy=True) for f in ("x", "P", "rejected")}
+    w = compiled.patch(u, bad, v)
+    assert w.x is u.x and w.P is u.P  # no copy of the covariances
+    assert w.rejected is not const and (const == 0).all()
+    for f in dataclasses.fields(w):
+        got, want = getattr(w, f.name), getattr(v, f.name)
+        np.testing.assert_array_equal(got[bad], want, f.name)
+    np.testing.assert_array_equal(w.x[~bad], before["x"][~bad])
+    np.testing.assert_array_equal(w.P[~bad], before["P"][~bad])
+    np.testing.assert_array_equal(w.rejected[~bad], 0)
