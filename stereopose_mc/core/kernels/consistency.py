@@ -329,7 +329,7 @@ def _pd_full(x, P, TP, L, b):
     ratio ``PD_PIVOTS`` (``T P T^T``'s own factorization is not round-off's verdict on a matrix
     that is singular to working precision, as a diverged filter's can be at 1e70). Otherwise
     False, and the caller factorizes ``P`` itself: the decision of ``numpy.linalg.cholesky``
-    wherever it is a matter of round-off. In case B's FilterPy row, 0.5 % of the trial-steps.
+    wherever it is a matter of round-off. In case B's FilterPy row: 6 of 4,864 trial-steps (0.12 %).
     """
     ne = L.shape[0]
     lo, hi = L[0, 0], L[0, 0]
