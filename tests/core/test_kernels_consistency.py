@@ -232,11 +232,12 @@ def test_the_schur_test_declines_an_ill_conditioned_map():
 
 def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
     """The 2 x 2 and 3 x 3 blocks' NEES in scalars (``_mahalanobis_small``) against ``_cholesky_small`` and
-    ``_forward`` on the same block: the same bits, NaN where the block is not positive definite."""
+    ``_forward`` on the same block: the same bits, NaN where the block is not positive definite (and other sizes
+    on the general path)."""
     from stereopose_mc.core.kernels import update as ku
 
     rng = np.random.default_rng(11)
-    for m in (2, 3):
+    for m in (1, 2, 3, 4):  # 1 and 4: the general path on both sides, the boundaries of the scalar one
         for trial in range(300):
             A = rng.standard_normal((m, m)) * np.logspace(-4, 4, m)[rng.permutation(m)]
             C = A @ A.T if trial % 3 else A @ A.T - rng.uniform(0, 2) * np.trace(A @ A.T) * np.eye(m) / m

@@ -58,7 +58,7 @@ def _mahalanobis(e, P, L, w):
     A 2 x 2 or 3 x 3 block (``_mahalanobis_small``) is written out in scalars, with the same
     operations in the same order as ``_cholesky_small`` and ``_forward``: the same bits.
     """
-    if P.shape[0] <= 3:
+    if P.shape[0] == 2 or P.shape[0] == 3:
         return _mahalanobis_small(e, P)
     if not _cholesky_small(P, L):
         return np.nan
