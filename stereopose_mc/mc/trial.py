@@ -347,22 +347,8 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update, fail
         try:
             return update(xa, Pa, step, rows, fs, setup), [""] * rows.size
         except np.linalg.LinAlgError as exc:
-            bad = getattr(exc, "bad", None)  # filters.compiled.PartialUpdateError: only ``bad`` is left to do
-            if bad is not None:  # numpy's update has failed on ``bad`` as one batch already
-                from ..filters.compiled import patch
-
-                idx = np.flatnonzero(bad)
-                if 1 < idx.size <= ALONE:  # each trial alone: k calls of numpy's update, a bisection ~2k - 2
-                    # copies ([i], not views): nothing that numpy's failure leaves behind holds the caller's arrays
-                    parts = [_robust_update(xa[[i]], Pa[[i]], step, rows[[i]], fs, setup, estimators.update)
-                             for i in idx.tolist()]  # fmt: skip
-                    sub, why = _concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
-                else:
-                    sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update, str(exc))
-                reasons = [""] * rows.size
-                for i, r in zip(idx.tolist(), why):
-                    reasons[i] = r
-                return patch(exc.update, bad, sub), reasons
+            if getattr(exc, "bad", None) is not None:  # filters.compiled.PartialUpdateError
+                return _left_to_numpy(xa, Pa, step, rows, fs, setup, exc)
             failed = str(exc)
     if rows.size == 1:
         n, ne, m = xa.shape[-1], Pa.shape[-1], step.y.shape[-1]
@@ -374,6 +360,28 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update, fail
     (u1, r1), (u2, r2) = (_robust_update(xa[sl], Pa[sl], step, rows[sl], fs, setup, update)
                           for sl in (slice(0, h), slice(h, None)))  # fmt: skip
     return _concatenate([u1, u2]), r1 + r2
+
+
+def _left_to_numpy(xa, Pa, step, rows, fs, setup, exc):
+    """``_robust_update`` of a batch on which the compiled update went through but for the trials ``exc.bad``, and
+    numpy's update then failed on those as one batch (``filters.compiled.PartialUpdateError``): those trials alone,
+    one by one (2 to ``ALONE``: ``k`` calls of numpy's update, where a bisection makes ~``2k - 2``) or bisected
+    without a second try, patched into the others' results ``exc.update``."""
+    from ..filters.compiled import patch
+
+    bad = exc.bad
+    idx = np.flatnonzero(bad)
+    if 1 < idx.size <= ALONE:
+        # copies ([i], not views): nothing that numpy's failure leaves behind holds the caller's arrays
+        parts = [_robust_update(xa[[i]], Pa[[i]], step, rows[[i]], fs, setup, estimators.update)
+                 for i in idx.tolist()]  # fmt: skip
+        sub, why = _concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
+    else:
+        sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update, str(exc))
+    reasons = [""] * rows.size
+    for i, r in zip(idx.tolist(), why):
+        reasons[i] = r
+    return patch(exc.update, bad, sub), reasons
 
 
 def _concatenate(updates: list):
