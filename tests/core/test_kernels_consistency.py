@@ -163,20 +163,6 @@ def _full_state_case(B, N, rng):
     return xh, d[:, None] * (A @ A.transpose(0, 2, 1) / n + 0.1 * np.eye(n)) * d
 
 
-def _schur_pd(x, P):
-    """``consistency._pd_full`` on one trial, from ``_map_full``'s products and the factor of ``T P T^T`` (None when
-    that does not factorize)."""
-    from stereopose_mc.core.kernels import update as ku
-
-    n = x.shape[-1]
-    TP, Pa = np.empty((n - 1, n)), np.empty((n - 1, n - 1))
-    kc._map_full(x, P, np.empty((n - 1, n)), TP, np.empty((n, n - 1)), Pa, np.empty((3, n)))
-    L = np.zeros((n - 1, n - 1))
-    if not ku._cholesky(Pa, L):
-        return None
-    return kc._pd_full(x, P, TP, L, np.empty(n - 1))
-
-
 def _numpy_pd(P):
     try:
         np.linalg.cholesky(P)
@@ -185,49 +171,96 @@ def _numpy_pd(P):
         return False
 
 
+def _with_aligned_covariance(x, Pa, c, s):
+    """A full-state ``P`` with ``T P T^T = Pa`` (``T = aligned.error_map(x)``), ``T P t = c`` and ``t^T P t = s``
+    (``t = (0, q/|q|, 0)``, ``T t = 0``): ``P = E^-1 [[Pa, c], [c^T, s]] E^-T``, ``E = [T; t^T]`` invertible."""
+    n = x.shape[-1]
+    t = np.zeros(n)
+    t[9:13] = x[9:13] / np.linalg.norm(x[9:13])
+    E = np.vstack([aligned.error_map(x[None])[0], t])
+    M = np.block([[Pa, c[:, None]], [c[None, :], np.array([[s]])]])
+    Y = np.linalg.solve(E, M)  # E^-1 M
+    P = np.linalg.solve(E, Y.T).T  # E^-1 M E^-T
+    return 0.5 * (P + P.T)
+
+
 @pytest.mark.parametrize("N", [1, 5, 12])
-def test_full_state_pd_from_the_schur_complement_is_numpys_cholesky(N):
-    """``pd`` of a full-state ``P`` from the factor of ``T P T^T`` and the Schur complement along the quaternion's
-    direction (``_pd_full``): True exactly where numpy's Cholesky of ``P`` goes through, for covariances spread over
-    five decades, then made indefinite in the quaternion's direction alone (which ``T P T^T`` does not see), or in a
-    direction ``T`` does see, or singular along the quaternion, where ``_pd_full`` declines and ``P`` is factorized."""
+def test_preimage_maps_back_to_the_aligned_error(N):
+    """``_preimage``: ``T dx = e`` for ``T = aligned.error_map(x)`` (numpy), with ``dx``'s quaternion part orthogonal
+    to ``q`` (the null direction of ``T``)."""
+    rng = np.random.default_rng(N)
+    xh, _, _ = _case(6, N)
+    n = xh.shape[-1]
+    for b in range(len(xh)):
+        T = aligned.error_map(xh[b : b + 1])[0]
+        Tm, dx = np.empty((n - 1, n)), np.empty(n)
+        kc._error_map(xh[b], Tm)
+        e = rng.standard_normal(n - 1) * np.logspace(-3, 1, n - 1)
+        kc._preimage(Tm, e, dx, N)
+        np.testing.assert_allclose(T @ dx, e, rtol=1e-13, atol=1e-14)
+        assert abs(dx[9:13] @ xh[b, 9:13]) <= 1e-15 * np.linalg.norm(dx[9:13]) * np.linalg.norm(xh[b, 9:13]) + 1e-300
+
+
+def test_attitude_chart_map_of_the_aligned_map_is_the_attitude_error_map():
+    """``M T = errorstate.error_map`` (``M = T_attitude S_aligned``, ``T = aligned.error_map``, all at ``x_hat``): the
+    attitude chart's blocks of ``M T P T^T M^T`` are ``P``'s own diagonal blocks (and ``Xi P_qq Xi^T`` for the
+    attitude), which ``_one_full`` reads without mapping ``P``."""
+    from stereopose_mc.core import errorstate as es
+
+    xh, _, _ = _case(10, 4)
+    MT = es.error_map(xh) @ aligned.chart_jacobian(xh) @ aligned.error_map(xh)
+    np.testing.assert_allclose(MT, es.error_map(xh), rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("N", [1, 5, 12])
+def test_full_state_nees_depends_on_the_aligned_covariance_only(N):
+    """A full-state ``P`` enters the NEES only through ``T P T^T``: whatever its variance along the quaternion's norm
+    ``s`` (1e-12 to 1e4 of the others: ``P`` up to ~1e14 ill-conditioned) and its correlation ``c`` with the rest,
+    every NEES is that of numpy's ``aligned.nees_report`` with ``T P T^T``, and ``pd`` is numpy's Cholesky of ``P``."""
+    rng = np.random.default_rng(N)
+    xh, Pa, xt = _case(6, N)
+    ne = xh.shape[-1] - 1
+    for b in range(len(xh)):
+        ref = aligned.nees_report(xh[b : b + 1], Pa[b : b + 1], xt[b : b + 1])
+        for s, rho in ((1e-12, 0.0), (1e-12, 0.5), (1.0, 0.9), (1e4, 0.3)):
+            scale = s * np.trace(Pa[b]) / ne
+            v = rng.standard_normal(ne)
+            c = rho * np.sqrt(scale) * (Pa[b] @ v) / np.sqrt(v @ Pa[b] @ v)  # |c|^2 < s c^T Pa^-1 c: PD
+            P = _with_aligned_covariance(xh[b], Pa[b], c, scale)
+            got, pd = kc.nees_and_pd(xh[b : b + 1], P[None], xt[b : b + 1])
+            assert pd[0] == _numpy_pd(P)
+            for k in kc.KEYS:
+                np.testing.assert_allclose(got[k], ref[k], rtol=1e-8, err_msg=f"{k} s={s:g} rho={rho}")
+
+
+@pytest.mark.parametrize("N", [1, 5, 12])
+def test_full_state_pd_is_numpys_cholesky(N):
+    """``pd`` of a full-state ``P`` is numpy's Cholesky of ``P`` (the one factorization the NEES is computed from), for
+    covariances spread over four decades, then made indefinite along the quaternion's norm alone (which ``T P T^T``
+    does not see: the NEES are then those of the mapped covariance, as in the numpy path) or in a direction ``T``
+    sees too."""
+    from stereopose_mc.mc import trial
+
     rng = np.random.default_rng(N)
     xh, P = _full_state_case(8, N, rng)
+    xt = xh.copy()
+    xt[:, :9] += 0.01 * rng.standard_normal((len(xh), 9))
     n = xh.shape[-1]
     for b in range(len(xh)):
-        assert _schur_pd(xh[b], P[b]) is True and _numpy_pd(P[b])
+        got, pd = kc.nees_and_pd(xh[b : b + 1], P[b][None], xt[b : b + 1])
+        assert pd[0] and _numpy_pd(P[b])
         t = np.zeros(n)
         t[9:13] = xh[b, 9:13] / np.linalg.norm(xh[b, 9:13])
-        # minus (s + margin) along t: T P T^T unchanged (T t = 0), the Schur complement negative
-        TP, Pa = np.empty((n - 1, n)), np.empty((n - 1, n - 1))
-        kc._map_full(xh[b], P[b], np.empty((n - 1, n)), TP, np.empty((n, n - 1)), Pa, np.empty((3, n)))
-        s = t @ P[b] @ t - TP @ t @ np.linalg.solve(Pa, TP @ t)
-        np.testing.assert_allclose(aligned.error_map(xh[b : b + 1])[0] @ t, 0.0, atol=1e-14)
-        for scale, want in ((2.0, False), (1.0 - 1e-3, True)):
-            Q = P[b] - scale * s * np.outer(t, t)  # Schur complement (1 - scale) s, t^T Q t = t^T P t - scale s
-            assert _numpy_pd(Q) is want
-            clear = bool((1.0 - scale) * s > kc.PD_MARGIN * (t @ P[b] @ t - scale * s))
-            assert kc._pd_full(xh[b], Q, TP, np.linalg.cholesky(Pa), np.empty(n - 1)) is clear
-            assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == want
-        Q = P[b] - s * np.outer(t, t)  # singular along t: declined, and P's own factorization decides
-        assert kc._pd_full(xh[b], Q, TP, np.linalg.cholesky(Pa), np.empty(n - 1)) is False
-        assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == _numpy_pd(Q)
+        Q = P[b] - 2.0 * (t @ P[b] @ t) * np.outer(t, t)  # t^T Q t < 0; T Q T^T = T P T^T
+        got2, pd2 = kc.nees_and_pd(xh[b : b + 1], Q[None], xt[b : b + 1])
+        assert not pd2[0] and not _numpy_pd(Q)
+        ref = trial.nees_of(xh[b : b + 1], Q[None], xt[b : b + 1], "full", "numpy")
+        for k in kc.KEYS:
+            np.testing.assert_allclose(got2[k], ref[k], rtol=1e-8, err_msg=k)
+            np.testing.assert_allclose(got2[k], got[k], rtol=1e-8, err_msg=k)
         v = rng.standard_normal(n)
         Q = P[b] - 1e3 * (v @ P[b] @ v) / (v @ v) ** 2 * np.outer(v, v)  # indefinite in a direction T sees too
-        assert not _numpy_pd(Q) and not kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0]
-
-
-def test_the_schur_test_declines_an_ill_conditioned_map():
-    """Factor pivots spread by more than ``PD_PIVOTS``: ``_pd_full`` declines (the factorization of ``T P T^T`` may be
-    round-off's), and ``nees_and_pd`` answers with numpy's Cholesky of ``P``."""
-    rng = np.random.default_rng(3)
-    xh, P = _full_state_case(4, 3, rng)
-    n = xh.shape[-1]
-    S = np.diag(np.r_[np.full(n - 2, 1e8), [1.0, 1.0]])  # k's variance 1e16 below the others
-    for b in range(len(xh)):
-        Q = S @ P[b] @ S
-        assert _schur_pd(xh[b], Q) is False
-        assert kc.nees_and_pd(xh[b : b + 1], Q[None], xh[b : b + 1])[1][0] == _numpy_pd(Q)
+        assert not _numpy_pd(Q) and not kc.nees_and_pd(xh[b : b + 1], Q[None], xt[b : b + 1])[1][0]
 
 
 def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():

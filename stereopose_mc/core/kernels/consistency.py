@@ -21,12 +21,13 @@ block covariances are solved by the Cholesky of ``core.kernels.update``. A trial
 (or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
 positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
 
-A filter whose covariance is that of the full state or of the attitude error state has it
-mapped to the aligned chart first (``nees_batch``; ``pd`` is then that of the ``P`` given): the full
-state's as ``T (T P)^T`` from the non-zeros of ``T`` (``aligned._apply_error_map``,
-``_map_full``), its ``pd`` from the factor of ``T P T^T`` and one Schur complement (``_pd_full``;
-``P``'s own factorization only where that cannot tell), the attitude state's ``pd`` by
-factorizing ``P``.
+A full-state filter's covariance ``P`` is not mapped (``_one_full``): the NEES with ``T P T^T``
+(``T = aligned.error_map(x_hat)``) is the least ``P``-Mahalanobis norm of an ``x``-space error
+that ``T`` maps to ``e``, from ``P``'s own Cholesky factor (which gives ``pd`` too), and the
+attitude chart's blocks are ``P``'s own (``M T = errorstate.error_map``). Where ``P`` does not
+factorize, it is mapped as ``T (T P)^T`` from the non-zeros of ``T`` (``aligned._apply_error_map``,
+``_map_full``) and the NEES is that of the map, as in the numpy path. An attitude error state's
+covariance is mapped to the aligned chart, its ``pd`` from factorizing ``P``.
 
 ``errors_batch`` (``errors``) is the twin of ``mc.trial.errors``: the six errors the engine
 records at every step, without numpy's per-call cost on small arrays.
@@ -198,6 +199,21 @@ def _gauge_forward(L, U, N):
 
 
 @njit(**_JIT)
+def _estimation_error(xh, xt, nh, nt, eps, tmp, dq):
+    """The attitude-chart error anchored at the truth, ``x_hat = x_true [+] eps`` (``errorstate.estimation_error``;
+    ``nh, nt``: the quaternions' norms)."""
+    ne = eps.shape[0]
+    for r in range(9):
+        eps[r] = xh[r] - xt[r]
+    for r in range(12, ne):
+        eps[r] = xh[r + 1] - xt[r + 1]
+    tmp[0], tmp[1], tmp[2], tmp[3] = xt[9] / nt, -xt[10] / nt, -xt[11] / nt, -xt[12] / nt
+    _qmul(xh[9:13], tmp, dq)
+    for j in range(3):
+        eps[9 + j] = 2.0 * (dq[1 + j] / nh) / (dq[0] / nh)
+
+
+@njit(**_JIT)
 def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
     n = xh.shape[0]
     ne = n - 1
@@ -228,15 +244,7 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
         for i in range(12, ne):
             w[i] -= s * U[j, i]
     out[1] = _dot(w, w, 0, ne)
-    # --- attitude-chart error, anchored at the truth: x_hat = x_true [+] eps
-    for r in range(9):
-        eps[r] = xh[r] - xt[r]
-    for r in range(12, ne):
-        eps[r] = xh[r + 1] - xt[r + 1]
-    tmp[0], tmp[1], tmp[2], tmp[3] = xt[9] / nt, -xt[10] / nt, -xt[11] / nt, -xt[12] / nt
-    _qmul(xh[9:13], tmp, dq)
-    for j in range(3):
-        eps[9 + j] = 2.0 * (dq[1 + j] / nh) / (dq[0] / nh)
+    _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     # --- M = d eps / d e at x_hat (rows of the attitude chart, columns of the aligned one), by rows of non-zeros
     for r in range(ne):
         cnt[r] = 0
@@ -299,6 +307,104 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
 
 
 @njit(**_JIT)
+def _preimage(Tm, e, dx, N):
+    """``dx (n)`` with ``T dx = e`` (``T = aligned.error_map(x)``, ``_error_map``'s ``Tm``) and its quaternion part
+    orthogonal to ``q`` (``T``'s null direction), from ``T``'s block structure: the rows of ``omega``, ``k`` and
+    the points are identity rows (the points' plus the quaternion's columns), those of ``delta`` are
+    ``Xi = 2 [L(q^*)]_vec`` on the quaternion (``Xi Xi^T = 4 I``, ``Xi q = 0``: ``dq = Xi^T delta / 4``), and
+    those of ``rho`` and ``rho_dot`` are identity rows plus columns solved before them."""
+    ne, n = Tm.shape
+    for c in range(n):
+        dx[c] = 0.0
+    for a in range(3):
+        dx[6 + a] = e[6 + a]
+    for j in range(4):
+        dx[9 + j] = 0.25 * (Tm[9, 9 + j] * e[9] + Tm[10, 9 + j] * e[10] + Tm[11, 9 + j] * e[11])
+    dx[n - 2], dx[n - 1] = e[ne - 2], e[ne - 1]
+    for r in range(12, 12 + 3 * N):
+        dx[r + 1] = e[r] - (Tm[r, 9] * dx[9] + Tm[r, 10] * dx[10] + Tm[r, 11] * dx[11] + Tm[r, 12] * dx[12])
+    for r in range(6):  # rho, rho_dot: their own column r; their other columns are solved (or zero in T)
+        s = e[r]
+        for c in range(n):
+            if c != r:
+                s -= Tm[r, c] * dx[c]
+        dx[r] = s
+
+
+@njit(**_JIT)
+def _one_full(xh, P, Lp, xt, N, out, Tm, e, dx, V, u, eps, C, Lb, w, D, Dt, R, dq, tmp, v3):
+    """``_one`` for a full-state covariance ``P = Lp Lp^T`` (its own Cholesky factor), without mapping ``P``.
+
+    ``T = aligned.error_map(x_hat)`` has full row rank and ``T t = 0``, ``t = (0, q/|q|, 0)``, so
+    the NEES of ``e`` with ``T P T^T`` is the least ``P``-Mahalanobis norm of an ``x``-space
+    error that ``T`` maps to ``e``: ``min_s |Lp^-1 (dx + s t)|^2`` for any ``dx`` with ``T dx = e``
+    (``_preimage``), i.e. ``|u|^2`` of ``u = Lp^-1 dx`` projected off ``Lp^-1 t``. The gauge-projected
+    NEES projects off the preimages of the 3 gauge columns too (modified Gram-Schmidt, as ``_one``).
+    The blocks of the attitude chart's covariance ``M T P T^T M^T`` are those of ``T_att P T_att^T``
+    (``M T = T_att = errorstate.error_map(x_hat)``: identity but ``Xi_att`` on the quaternion), i.e.
+    ``P``'s own diagonal blocks, and ``Xi_att P_qq Xi_att^T`` for the attitude. The same NEES as
+    ``_one`` on ``_map_full``'s ``T P T^T``, to round-off, with no product of ``P``.
+    """
+    n = xh.shape[0]
+    ne = n - 1
+    nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
+    _error_map(xh, Tm)
+    _preimage(Tm, e, dx, N)
+    _forward(Lp, dx, u)
+    # V[0] = Lp^-1 t (t zero above row 9), V[1 + j] = Lp^-1 of the preimage of gauge column j
+    for c in range(n):
+        dx[c] = 0.0
+    for j in range(4):
+        dx[9 + j] = xh[9 + j] / nh
+    _forward(Lp, dx, V[0], 8)
+    for j in range(3):
+        for r in range(ne):
+            w[r] = 0.0
+        for i in range(N):
+            w[12 + 3 * i + j] = 1.0
+        _preimage(Tm, w, dx, N)
+        _forward(Lp, dx, V[1 + j])
+    for j in range(4):
+        for k in range(j):
+            s = _dot(V[k], V[j], 0, n)
+            for i in range(n):
+                V[j, i] -= s * V[k, i]
+        s = math.sqrt(_dot(V[j], V[j], 0, n))
+        for i in range(n):
+            V[j, i] /= s
+        s = _dot(V[j], u, 0, n)
+        for i in range(n):
+            u[i] -= s * V[j, i]
+        if j == 0:
+            out[0] = _dot(u, u, 0, n)
+    out[1] = _dot(u, u, 0, n)
+    # --- blocks: rho, rho_dot, omega, the points and k are P's own; the attitude's is Xi_att P_qq Xi_att^T
+    _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
+    q0, q1, q2, q3 = xh[9] / nh, xh[10] / nh, xh[11] / nh, xh[12] / nh
+    Xi = Lb[:3, :4]  # errorstate.attitude_map (attitude._error_map): 2 [R(q^*)]_vec
+    Xi[0, 0], Xi[0, 1], Xi[0, 2], Xi[0, 3] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
+    Xi[1, 0], Xi[1, 1], Xi[1, 2], Xi[1, 3] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
+    Xi[2, 0], Xi[2, 1], Xi[2, 2], Xi[2, 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
+    Y = C[3:6, :4]
+    for a in range(3):
+        for c in range(4):
+            Y[a, c] = Xi[a, 0] * P[9, 9 + c] + Xi[a, 1] * P[10, 9 + c] + Xi[a, 2] * P[11, 9 + c] + Xi[a, 3] * P[12, 9 + c]
+    Ca = C[:3, :3]
+    for a in range(3):
+        for b in range(a + 1):
+            s = Y[a, 0] * Xi[b, 0] + Y[a, 1] * Xi[b, 1] + Y[a, 2] * Xi[b, 2] + Y[a, 3] * Xi[b, 3]
+            Ca[a, b] = s
+            Ca[b, a] = s
+    p1 = 12 + 3 * N
+    out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)
+    out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
+    out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
+    out[5] = _mahalanobis(eps[9:12], Ca, Lb, w)
+    out[6] = _mahalanobis(eps[12:p1], P[13 : p1 + 1, 13 : p1 + 1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
+    out[7] = _mahalanobis(eps[p1:ne], P[p1 + 1 : n, p1 + 1 : n], Lb[: ne - p1, : ne - p1], w[: ne - p1])
+
+
+@njit(**_JIT)
 def _map_full(x, P, Tm, TP, Pt, Pa, Sp):
     """``Pa = T P T^T`` (lower triangle mirrored), ``T = aligned.error_map(x)``: ``TP = T P``, ``Pa = T (TP)^T``
     (``P`` symmetric) by ``_apply_error_map``, ``Pt`` the transposed scratch (``n x n-1``)."""
@@ -308,48 +414,6 @@ def _map_full(x, P, Tm, TP, Pt, Pa, Sp):
     Pt[:, :] = TP.T
     _apply_error_map(Tm, N, Pt, Pa, Sp, True)
     _mirror_lower(Pa)
-
-
-PD_MARGIN = 1e-6  # _pd_full: a Schur complement above this fraction of t^T P t is positive beyond round-off
-PD_PIVOTS = 1e6  # _pd_full: the largest pivot of T P T^T's factor over its smallest, at most (the spread of its scales)
-
-
-@njit(**_JIT)
-def _pd_full(x, P, TP, L, b):
-    """Whether the full-state ``P`` is positive definite, from ``_map_full``'s ``TP = T P`` and the Cholesky factor
-    ``L`` of ``T P T^T`` (a factorization that went through); False where it cannot tell.
-
-    ``T`` (``n-1 x n``, full row rank) is zero on the quaternion direction ``t = (0, q/|q|, 0)``
-    (``T t = 0``: the aligned error does not see the quaternion's norm), so ``E = [T; t^T]`` is
-    invertible and ``P`` is positive definite iff ``E P E^T = [[T P T^T, T P t], [t^T P T^T,
-    t^T P t]]`` is: iff ``T P T^T`` is and the Schur complement ``s = t^T P t - |L^-1 T P t|^2 > 0``.
-    One forward substitution instead of a second factorization of ``n x n``.
-
-    Only a clear answer is given: ``s > PD_MARGIN t^T P t``, with the factor's diagonal within a
-    ratio ``PD_PIVOTS`` (``T P T^T``'s own factorization is not round-off's verdict on a matrix
-    that is singular to working precision, as a diverged filter's can be at 1e70). Otherwise
-    False, and the caller factorizes ``P`` itself: the decision of ``numpy.linalg.cholesky``
-    wherever it is a matter of round-off. In case B's FilterPy row: 6 of 4,864 trial-steps (0.12 %).
-    """
-    ne = L.shape[0]
-    lo, hi = L[0, 0], L[0, 0]
-    for r in range(1, ne):
-        lo, hi = min(lo, L[r, r]), max(hi, L[r, r])
-    if not hi <= PD_PIVOTS * lo:  # T P T^T too ill-conditioned for its factorization to tell
-        return False
-    qn = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
-    t0, t1, t2, t3 = x[9] / qn, x[10] / qn, x[11] / qn, x[12] / qn
-    tpt = 0.0
-    for i in range(4):
-        ti = (t0, t1, t2, t3)[i]
-        tpt += ti * (P[9 + i, 9] * t0 + P[9 + i, 10] * t1 + P[9 + i, 11] * t2 + P[9 + i, 12] * t3)
-    for r in range(ne):
-        b[r] = TP[r, 9] * t0 + TP[r, 10] * t1 + TP[r, 11] * t2 + TP[r, 12] * t3
-    _forward(L, b, b)
-    s = tpt
-    for r in range(ne):
-        s -= b[r] * b[r]
-    return tpt > 0.0 and s > PD_MARGIN * tpt
 
 
 @njit(**_JIT)
@@ -442,6 +506,9 @@ def nees_batch(x_hat, P, x_true, attitude):
     v3 = np.empty((6, 3))
     Sp = np.empty((3, ne))
     Wp = np.empty((6, 3))
+    dx = np.empty(n)
+    V = np.empty((4, n))
+    ux = np.empty(n)
     for t in range(B):
         ok = True
         for j in range(n):
@@ -453,7 +520,11 @@ def nees_batch(x_hat, P, x_true, attitude):
                     ok = False
         if not ok:
             continue
-        if mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
+        if full and _cholesky(P[t], Lf):  # positive definite: the NEES from P's own factor, nothing mapped
+            pd[t] = True
+            _one_full(x_hat[t], P[t], Lf, x_true[t], N, out[t], Tm, e, dx, V, ux, eps, C, Lb, w, D, Dt, R, dq, tmp,
+                      v3)  # fmt: skip
+        elif mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
             if full:
                 _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
             else:  # M^-1 = T_aligned S_attitude
@@ -465,8 +536,8 @@ def nees_batch(x_hat, P, x_true, attitude):
                 _mirror_lower(Pa)
             one = _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R,
                        dq, tmp, v3, Sp, Wp)  # fmt: skip
-            # P's own factorization only where the Schur complement cannot tell (L: the factor of Pa)
-            pd[t] = (full and one and _pd_full(x_hat[t], P[t], TP, L, u)) or _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
+            # a full-state P here did not factorize; an attitude-chart P's pd is its own factorization's
+            pd[t] = not full and _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
                          R, dq, tmp, v3, Sp, Wp)  # fmt: skip
