@@ -332,52 +332,92 @@ def _preimage(Tm, e, dx, N):
 
 
 @njit(**_JIT)
-def _one_full(xh, P, Lp, xt, N, out, Tm, e, dx, V, u, eps, C, Lb, w, D, Dt, R, dq, tmp, v3):
+def _forward5(L, W):
+    """``W[j] <- L^-1 W[j]`` for the 5 rows of ``W`` in one pass over ``L`` (lower triangular): five running sums
+    per row of ``L``, each row of ``L`` read once."""
+    n = L.shape[0]
+    for i in range(n):
+        s0, s1, s2, s3, s4 = W[0, i], W[1, i], W[2, i], W[3, i], W[4, i]
+        for k in range(i):
+            c = L[i, k]
+            s0 -= c * W[0, k]
+            s1 -= c * W[1, k]
+            s2 -= c * W[2, k]
+            s3 -= c * W[3, k]
+            s4 -= c * W[4, k]
+        d = L[i, i]
+        W[0, i], W[1, i], W[2, i], W[3, i], W[4, i] = s0 / d, s1 / d, s2 / d, s3 / d, s4 / d
+
+
+@njit(**_JIT)
+def _project_off(W, j0, j1):
+    """Rows ``j0..j1-1`` of ``W`` made orthonormal (modified Gram-Schmidt, in order) and ``W[0]`` projected off
+    each in turn; returns ``|W[0]|^2`` after the first projection (the others are in ``W[0]``)."""
+    n = W.shape[1]
+    first = 0.0
+    for j in range(j0, j1):
+        for k in range(j0, j):
+            s = 0.0
+            for i in range(n):
+                s += W[k, i] * W[j, i]
+            for i in range(n):
+                W[j, i] -= s * W[k, i]
+        s = 0.0
+        for i in range(n):
+            s += W[j, i] * W[j, i]
+        s = 1.0 / math.sqrt(s)
+        c = 0.0
+        for i in range(n):
+            W[j, i] *= s
+            c += W[j, i] * W[0, i]
+        for i in range(n):
+            W[0, i] -= c * W[j, i]
+        if j == j0:
+            for i in range(n):
+                first += W[0, i] * W[0, i]
+    return first
+
+
+@njit(**_JIT)
+def _one_full(xh, P, Lp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, v3):
     """``_one`` for a full-state covariance ``P = Lp Lp^T`` (its own Cholesky factor), without mapping ``P``.
 
     ``T = aligned.error_map(x_hat)`` has full row rank and ``T t = 0``, ``t = (0, q/|q|, 0)``, so
     the NEES of ``e`` with ``T P T^T`` is the least ``P``-Mahalanobis norm of an ``x``-space
     error that ``T`` maps to ``e``: ``min_s |Lp^-1 (dx + s t)|^2`` for any ``dx`` with ``T dx = e``
     (``_preimage``), i.e. ``|u|^2`` of ``u = Lp^-1 dx`` projected off ``Lp^-1 t``. The gauge-projected
-    NEES projects off the preimages of the 3 gauge columns too (modified Gram-Schmidt, as ``_one``).
-    The blocks of the attitude chart's covariance ``M T P T^T M^T`` are those of ``T_att P T_att^T``
-    (``M T = T_att = errorstate.error_map(x_hat)``: identity but ``Xi_att`` on the quaternion), i.e.
-    ``P``'s own diagonal blocks, and ``Xi_att P_qq Xi_att^T`` for the attitude. The same NEES as
-    ``_one`` on ``_map_full``'s ``T P T^T``, to round-off, with no product of ``P``.
+    NEES projects off the preimages of the 3 gauge columns too (``d P_i = e_j`` for every point,
+    ``d rho`` and ``d rho_dot`` minus the sums of ``T``'s point columns; modified Gram-Schmidt, as
+    ``_one``: no cancellation between the full NEES and the gauge part). The blocks of the
+    attitude chart's covariance ``M T P T^T M^T`` are those of ``T_att P T_att^T`` (``M T = T_att =
+    errorstate.error_map(x_hat)``: identity but ``Xi_att`` on the quaternion), i.e. ``P``'s own
+    diagonal blocks, and ``Xi_att P_qq Xi_att^T`` for the attitude. The same NEES as ``_one`` on
+    ``_map_full``'s ``T P T^T``, to round-off, with no product of ``P``. ``W (5, n)``: scratch.
     """
     n = xh.shape[0]
     ne = n - 1
     nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
     _error_map(xh, Tm)
-    _preimage(Tm, e, dx, N)
-    _forward(Lp, dx, u)
-    # V[0] = Lp^-1 t (t zero above row 9), V[1 + j] = Lp^-1 of the preimage of gauge column j
-    for c in range(n):
-        dx[c] = 0.0
+    _preimage(Tm, e, W[0], N)
+    for j in range(1, 5):
+        for c in range(n):
+            W[j, c] = 0.0
     for j in range(4):
-        dx[9 + j] = xh[9 + j] / nh
-    _forward(Lp, dx, V[0], 8)
-    for j in range(3):
-        for r in range(ne):
-            w[r] = 0.0
+        W[1, 9 + j] = xh[9 + j] / nh  # t
+    for j in range(3):  # gauge column j: d P_i = e_j for every point, rho and rho_dot compensating
+        g = W[2 + j]
         for i in range(N):
-            w[12 + 3 * i + j] = 1.0
-        _preimage(Tm, w, dx, N)
-        _forward(Lp, dx, V[1 + j])
-    for j in range(4):
-        for k in range(j):
-            s = _dot(V[k], V[j], 0, n)
-            for i in range(n):
-                V[j, i] -= s * V[k, i]
-        s = math.sqrt(_dot(V[j], V[j], 0, n))
-        for i in range(n):
-            V[j, i] /= s
-        s = _dot(V[j], u, 0, n)
-        for i in range(n):
-            u[i] -= s * V[j, i]
-        if j == 0:
-            out[0] = _dot(u, u, 0, n)
-    out[1] = _dot(u, u, 0, n)
+            g[13 + 3 * i + j] = 1.0
+        for r in range(6):
+            s = 0.0
+            for i in range(N):
+                s += Tm[r, 13 + 3 * i + j]
+            g[r] = -s
+    _forward5(Lp, W)
+    out[1] = 0.0
+    out[0] = _project_off(W, 1, 5)
+    for i in range(n):
+        out[1] += W[0, i] * W[0, i]
     # --- blocks: rho, rho_dot, omega, the points and k are P's own; the attitude's is Xi_att P_qq Xi_att^T
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     q0, q1, q2, q3 = xh[9] / nh, xh[10] / nh, xh[11] / nh, xh[12] / nh
@@ -400,7 +440,11 @@ def _one_full(xh, P, Lp, xt, N, out, Tm, e, dx, V, u, eps, C, Lb, w, D, Dt, R, d
     out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
     out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
     out[5] = _mahalanobis(eps[9:12], Ca, Lb, w)
-    out[6] = _mahalanobis(eps[12:p1], P[13 : p1 + 1, 13 : p1 + 1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
+    out[6] = np.nan  # the points' block (3N x 3N) by LAPACK's potrf: cheaper than the written-out one from ~15
+    Lpt = Lb[: 3 * N, : 3 * N]
+    if _cholesky(P[13 : p1 + 1, 13 : p1 + 1], Lpt):
+        _forward(Lpt, eps[12:p1], w[: 3 * N])
+        out[6] = _dot(w, w, 0, 3 * N)
     out[7] = _mahalanobis(eps[p1:ne], P[p1 + 1 : n, p1 + 1 : n], Lb[: ne - p1, : ne - p1], w[: ne - p1])
 
 
@@ -506,24 +550,19 @@ def nees_batch(x_hat, P, x_true, attitude):
     v3 = np.empty((6, 3))
     Sp = np.empty((3, ne))
     Wp = np.empty((6, 3))
-    dx = np.empty(n)
-    V = np.empty((4, n))
-    ux = np.empty(n)
+    W5 = np.empty((5, n))
     for t in range(B):
-        ok = True
+        z = 0.0  # 0 x a finite number is 0, 0 x inf or NaN is NaN: every entry checked without a branch
         for j in range(n):
-            if not (math.isfinite(x_hat[t, j]) and math.isfinite(x_true[t, j])):
-                ok = False
+            z += x_hat[t, j] * 0.0 + x_true[t, j] * 0.0
         for r in range(P.shape[1]):
             for c in range(P.shape[2]):
-                if not math.isfinite(P[t, r, c]):
-                    ok = False
-        if not ok:
+                z += P[t, r, c] * 0.0
+        if z != 0.0:
             continue
         if full and _cholesky(P[t], Lf):  # positive definite: the NEES from P's own factor, nothing mapped
             pd[t] = True
-            _one_full(x_hat[t], P[t], Lf, x_true[t], N, out[t], Tm, e, dx, V, ux, eps, C, Lb, w, D, Dt, R, dq, tmp,
-                      v3)  # fmt: skip
+            _one_full(x_hat[t], P[t], Lf, x_true[t], N, out[t], Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
         elif mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
             if full:
                 _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
