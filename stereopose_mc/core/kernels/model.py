@@ -433,14 +433,17 @@ def predict_covariance_batch(P, T, Q):
     acc = np.empty(13)
     for b in range(B):
         # T P[c, :] by scaled rows of P (contiguous, vectorized), not by dot products down its columns
+        # (the zeros of T, ~40 % of it (rho, rho_dot do not see the attitude), are skipped: a finite P's sums are
+        # the same numbers without their exact-zero terms)
         for i in range(13):
             for j in range(n):
                 TP[i, j] = 0.0
             for l in range(15):
                 t = T[b, i, l]
-                Pl = P[b, cols[l]]
-                for j in range(n):
-                    TP[i, j] += t * Pl[j]
+                if t != 0.0:
+                    Pl = P[b, cols[l]]
+                    for j in range(n):
+                        TP[i, j] += t * Pl[j]
             for l in range(15):
                 Tt[l, i] = T[b, i, l]
         out[b, :, :] = P[b]
