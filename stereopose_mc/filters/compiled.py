@@ -45,6 +45,11 @@ Array = NDArray[np.float64]
 # filter types with compiled kernels (the UKF: its own path; its iterated first update on the update kernels)
 COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
+# up to this many trials the kernels leave to numpy's update (their P- or A does not factorize) are handed to the
+# caller to update one by one, without a batch attempt first (mc.trial._left_to_numpy): such trials are diverging, and
+# numpy's update fails on one of them as often as not (then the batch attempt was one call more; 8 of 10 calls in case
+# B's full-state EKF)
+ONE_BY_ONE = 16
 FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
 
@@ -279,8 +284,11 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
-    if np.count_nonzero(ok) < b:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
+    k = b - np.count_nonzero(ok)
+    if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
         bad = ~ok
+        if k <= ONE_BY_ONE and k > 1:  # the caller updates them one by one: no batch attempt first
+            raise PartialUpdateError(u, bad, "left to numpy's update", tried=False)
         try:
             u = patch(u, bad, estimators.update(x[bad], P[bad], step, rows[bad], fs, setup))
         except np.linalg.LinAlgError as exc:
@@ -289,17 +297,18 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
 
 
 class PartialUpdateError(np.linalg.LinAlgError):
-    """The compiled update went through for every trial but ``bad``, and numpy's update failed on those as a batch.
+    """The compiled update went through for every trial but ``bad``, which are left to numpy's update: it failed on
+    them as a batch (``tried``), or (2 to ``ONE_BY_ONE`` trials) it was not tried on them as a batch.
 
     ``update`` holds the good trials' results (``bad``'s rows are to be replaced): the caller
-    (``mc.trial._robust_update``) bisects ``bad`` alone with numpy's update instead of computing
-    the whole batch again. The same results as a bisection of the whole batch, since every
-    kernel treats trials independently.
+    (``mc.trial._robust_update``) updates ``bad`` alone with numpy's update (one by one, or
+    bisected) instead of computing the whole batch again. The same results as a bisection of the
+    whole batch, since every kernel treats trials independently.
     """
 
-    def __init__(self, update: relnav.GatedUpdate, bad: Array, message: str):
+    def __init__(self, update: relnav.GatedUpdate, bad: Array, message: str, tried: bool = True):
         super().__init__(message)
-        self.update, self.bad = update, bad
+        self.update, self.bad, self.tried = update, bad, tried
 
 
 def patch(u, bad: Array, v):

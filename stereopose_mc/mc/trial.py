@@ -340,8 +340,9 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update, fail
     collector's next pass (25 MB per 250-trial chunk of case B, measured).
 
     The few trials (2 to ``ALONE``) that the compiled update leaves to numpy's
-    (``filters.compiled.PartialUpdateError``: numpy's has failed on them as a batch) are
-    updated one by one: the same results as bisecting them, in ``k`` calls instead of ~``2k - 2``.
+    (``filters.compiled.PartialUpdateError``: numpy's has failed on them as a batch, or was not
+    tried on them as one) are updated one by one: the same results as bisecting them, in ``k``
+    calls instead of ~``2k - 2``.
     """
     if failed is None:
         try:
@@ -363,15 +364,16 @@ def _robust_update(xa, Pa, step, rows, fs, setup, update=estimators.update, fail
 
 
 def _left_to_numpy(xa, Pa, step, rows, fs, setup, exc):
-    """``_robust_update`` of a batch on which the compiled update went through but for the trials ``exc.bad``, and
-    numpy's update then failed on those as one batch (``filters.compiled.PartialUpdateError``): those trials alone,
-    one by one (2 to ``ALONE``: ``k`` calls of numpy's update, where a bisection makes ~``2k - 2``) or bisected
-    without a second try, patched into the others' results ``exc.update``."""
+    """``_robust_update`` of a batch on which the compiled update went through but for the trials ``exc.bad``, left
+    to numpy's update (``filters.compiled.PartialUpdateError``: it failed on them as one batch, or, for 2 to
+    ``compiled.ONE_BY_ONE`` of them, was not tried): those trials alone, one by one (2 to ``ALONE``, or not tried:
+    ``k`` calls of numpy's update, where a bisection makes ~``2k - 2``) or bisected without a second try, patched
+    into the others' results ``exc.update``."""
     from ..filters.compiled import patch
 
     bad = exc.bad
     idx = np.flatnonzero(bad)
-    if 1 < idx.size <= ALONE:
+    if 1 < idx.size <= ALONE or not exc.tried:
         # copies ([i], not views): nothing that numpy's failure leaves behind holds the caller's arrays
         parts = [_robust_update(xa[[i]], Pa[[i]], step, rows[[i]], fs, setup, estimators.update)
                  for i in idx.tolist()]  # fmt: skip

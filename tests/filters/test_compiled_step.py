@@ -505,7 +505,7 @@ def test_a_partial_failure_is_bisected_alone_with_the_same_results():
         u, why = _robust_update(x, P, step, rows, fs, setup, compiled.update)
     finally:
         compiled.estimators.update = numpy_update
-    assert sizes == [2, 1, 1]  # numpy's update on the two failed trials once, then on each alone: no second try
+    assert sizes == [1, 1]  # numpy's update on each of the two failed trials alone: no batch attempt, no second try
     v, why_v = _robust_update(x, P, step, rows, fs, setup, whole_batch_bisection)
     assert why == why_v and [bool(r) for r in why] == [False, False, True, False, True, False]
     assert why[2].startswith("linear algebra failure in the update")
@@ -514,15 +514,15 @@ def test_a_partial_failure_is_bisected_alone_with_the_same_results():
     assert np.isnan(u.x[[2, 4]]).all() and np.isfinite(u.x[good]).all()
 
 
-@pytest.mark.parametrize("failing", [[3], [0, 2, 3, 5, 6], list(range(1, 9))])
+@pytest.mark.parametrize("failing", [[3], [0, 2, 3, 5, 6], list(range(1, 9)), list(range(1, 19))])
 def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_results(failing):
-    """Up to ``trial.ALONE`` trials left to numpy's update (after it failed on them as a batch) are updated one by
-    one, a single one not tried twice; more are bisected. Every field and reason is bit for bit that of the
-    bisection of the whole batch, and numpy's update is called ``1 + k`` times for ``1 < k <= ALONE``."""
+    """Up to ``compiled.ONE_BY_ONE`` trials left to numpy's update are updated one by one without a batch attempt
+    (``k`` calls), a single one not tried twice; more are tried as a batch, then bisected. Every field and reason is
+    bit for bit that of the bisection of the whole batch."""
     from stereopose_mc.filters import compiled
     from stereopose_mc.mc import trial
 
-    x, P, step, fs, setup = _aligned_step("iekf", B=9)
+    x, P, step, fs, setup = _aligned_step("iekf", B=max(9, len(failing) + 2))
     P[failing] = -P[failing]
     rows = np.arange(len(x))
     sizes = []
@@ -544,8 +544,9 @@ def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_res
     finally:
         compiled.estimators.update = numpy_update
     k = len(failing)
-    expected = [k] + [1] * k if 1 < k <= trial.ALONE else [k]
-    assert sizes == expected if k <= trial.ALONE else sizes[0] == k and len(sizes) > k
+    assert compiled.ONE_BY_ONE <= trial.ALONE  # (the trials handed over untried are updated one by one)
+    expected = [1] * k if k <= compiled.ONE_BY_ONE else [k]
+    assert sizes == expected if k <= compiled.ONE_BY_ONE else sizes[0] == k and len(sizes) > k
     v, why_v = trial._robust_update(x, P, step, rows, fs, setup, whole_batch_bisection)
     assert why == why_v and [bool(r) for r in why] == [i in failing for i in rows]
     for f in dataclasses.fields(u):
