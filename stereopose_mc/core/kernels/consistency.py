@@ -522,13 +522,14 @@ def nees_batch(x_hat, P, x_true, attitude):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
     ``P``: the aligned error state's ``(B, n-1, n-1)``; the full state's ``(B, n, n)`` (a
-    full-state filter's), mapped to the aligned chart at the estimate as ``T P T^T``, ``T =
-    aligned.error_map(x_hat)``; or, with ``attitude``, the attitude error state's ``(B, n-1,
-    n-1)``, mapped as ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, ``M = T_attitude
-    S_aligned``) with ``M^-1 = T_aligned S_attitude`` at the estimate: for a unit quaternion the
-    two charts' maps are exact inverses, so no solve (``mc.trial.aligned_covariance``). ``pd``: the estimate and
+    full-state filter's): the NEES of ``T P T^T``, ``T = aligned.error_map(x_hat)``, from ``P``'s
+    own factor (``_one_full``), or, where ``P`` does not factorize, of ``T P T^T`` itself
+    (``_map_full``); or, with ``attitude``, the attitude error state's ``(B, n-1, n-1)``, mapped
+    as ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, ``M = T_attitude S_aligned``) with
+    ``M^-1 = T_aligned S_attitude`` at the estimate: for a unit quaternion the two charts' maps
+    are exact inverses, so no solve (``mc.trial.aligned_covariance``). ``pd``: the estimate and
     covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
-    went through, or for the full state ``_pd_full``'s test). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
+    went through). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
     covariance is not positive definite.
     """
     B, n = x_hat.shape
