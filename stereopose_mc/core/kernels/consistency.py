@@ -585,8 +585,8 @@ def nees_batch(x_hat, P, x_true, attitude):
                 np.dot(Mi, P[t], C)
                 np.dot(C, Mi.T, Pa)
                 _mirror_lower(Pa)
-            one = _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R,
-                       dq, tmp, v3, Sp, Wp)  # fmt: skip
+            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp,
+                 v3, Sp, Wp)  # fmt: skip
             # a full-state P here did not factorize; an attitude-chart P's pd is its own factorization's
             pd[t] = not full and _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
