@@ -45,10 +45,10 @@ Array = NDArray[np.float64]
 # filter types with compiled kernels (the UKF: its own path; its iterated first update on the update kernels)
 COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
-# up to this many trials the kernels leave to numpy's update (their P- or A does not factorize) are handed to the
-# caller to update one by one, without a batch attempt first (mc.trial._left_to_numpy): such trials are diverging, and
-# numpy's update fails on one of them as often as not (then the batch attempt was one call more; 8 of 10 calls in case
-# B's full-state EKF)
+# 2 to this many trials the kernels leave to numpy's update (their P- or A does not factorize) are handed to the
+# caller (PartialUpdateError, tried=False), which updates them one by one (mc.trial._left_to_numpy) with no batch
+# attempt first: such trials are diverging, and a batch attempt that fails on one of them is a call spent for nothing
+# (in case B's full-state EKF every one failed: 8 numpy calls per run instead of 10)
 ONE_BY_ONE = 16
 FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
@@ -249,7 +249,10 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     The EKF or the IEKF as ``relnav.kalman_update`` chooses (``_iterated``). A trial whose
     Cholesky factorization fails (``S`` or ``P-`` not numerically positive definite, as in a
     filter that is losing track) is updated by ``estimators.update``, so it meets numpy's
-    solvers and their errors exactly as with ``--kernels numpy``.
+    solvers and their errors exactly as with ``--kernels numpy``: here for one such trial, or
+    for more than ``ONE_BY_ONE`` as a batch; 2 to ``ONE_BY_ONE`` of them raise
+    ``PartialUpdateError`` (``tried=False``) for the caller (``mc.trial._robust_update``) to update
+    one by one, as it does when numpy's update fails on the batch.
     """
     chart, iterated = chart_code(fs), _iterated(fs, setup, step)
     x, P = _writable(x), _writable(P)
@@ -287,7 +290,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
         bad = ~ok
-        if k <= ONE_BY_ONE and k > 1:  # the caller updates them one by one: no batch attempt first
+        if 1 < k <= ONE_BY_ONE:  # the caller updates them one by one: no batch attempt first
             raise PartialUpdateError(u, bad, "left to numpy's update", tried=False)
         try:
             u = patch(u, bad, estimators.update(x[bad], P[bad], step, rows[bad], fs, setup))
