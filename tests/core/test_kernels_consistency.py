@@ -263,6 +263,30 @@ def test_full_state_pd_is_numpys_cholesky(N):
         assert not _numpy_pd(Q) and not kc.nees_and_pd(xh[b : b + 1], Q[None], xt[b : b + 1])[1][0]
 
 
+def test_attitude_chart_nees_blocks_are_those_of_its_own_covariance():
+    """An attitude error state's ``P`` (``nees_and_pd(..., attitude=True)``, unmapped since stop 24): each block's
+    NEES is ``eps_b^T P_bb^-1 eps_b`` with ``eps = errorstate.estimation_error`` and ``P``'s own diagonal block
+    (``M (M^-1 P M^-T) M^T = P``), by numpy's solve; the full NEES is that of ``M^-1 P M^-T`` against the truth's
+    aligned error (``aligned.nees_report``), also with ``P`` a thousand times wider along one direction."""
+    from stereopose_mc.core import errorstate as es
+
+    rng = np.random.default_rng(24)
+    for N in (1, 4, 7):
+        xh, Pa, xt = _case(12, N)
+        P = aligned.to_attitude_chart(xh, Pa)
+        v = rng.standard_normal(P.shape[-1])
+        P[3:] += 1e3 * np.trace(P[3]) / P.shape[-1] * np.outer(v, v) / (v @ v)  # ill-conditioned (~1e5)
+        got, pd = kc.nees_and_pd(xh, P, xt, attitude=True)
+        assert pd.all()
+        eps = es.estimation_error(xh, xt)
+        for name, b in es.error_blocks(N).items():
+            want = [eps[i, b] @ np.linalg.solve(P[i][b][:, b], eps[i, b]) for i in range(len(xh))]
+            np.testing.assert_allclose(got[f"nees_{name}"], want, rtol=1e-9, err_msg=name)
+        ref = aligned.nees_report(xh, aligned.from_attitude_chart(xh, P), xt)
+        for k in ("nees", "nees_gauge"):
+            np.testing.assert_allclose(got[k], ref[k], rtol=1e-8, err_msg=k)
+
+
 def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
     """The 2 x 2 and 3 x 3 blocks' NEES in scalars (``_mahalanobis_small``) against ``_cholesky_small`` and
     ``_forward`` on the same block: the same bits, NaN where the block is not positive definite (and other sizes

@@ -27,7 +27,9 @@ that ``T`` maps to ``e``, from ``P``'s own Cholesky factor (which gives ``pd`` t
 attitude chart's blocks are ``P``'s own (``M T = errorstate.error_map``). Where ``P`` does not
 factorize, it is mapped as ``T (T P)^T`` from the non-zeros of ``T`` (``aligned._apply_error_map``,
 ``_map_full``) and the NEES is that of the map, as in the numpy path. An attitude error state's
-covariance is mapped to the aligned chart, its ``pd`` from factorizing ``P``.
+covariance is not mapped either (``_one_att``): with ``M = T_attitude S_aligned`` (whose inverse
+maps it to the aligned chart), the NEES is ``|L^-1 M e|^2`` from ``P``'s own factor, and the
+blocks are ``P``'s own; where ``P`` does not factorize, it is mapped to the aligned chart.
 
 ``errors_batch`` (``errors``) is the twin of ``mc.trial.errors``: the six errors the engine
 records at every step, without numpy's per-call cost on small arrays.
@@ -68,6 +70,16 @@ def _mahalanobis(e, P, L, w):
     for i in range(e.shape[0]):
         s += w[i] * w[i]
     return s
+
+
+@njit(**_JIT)
+def _mahalanobis_lapack(e, P, L, w):
+    """``_mahalanobis`` by LAPACK's ``potrf`` (``_cholesky``), for the points' block (3N x 3N): cheaper than the
+    written-out factorization from ~15 rows; NaN if ``P`` is not positive definite."""
+    if not _cholesky(P, L):
+        return np.nan
+    _forward(L, e, w)
+    return _dot(w, w, 0, e.shape[0])
 
 
 @njit(**_JIT)
@@ -214,38 +226,13 @@ def _estimation_error(xh, xt, nh, nt, eps, tmp, dq):
 
 
 @njit(**_JIT)
-def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
-    n = xh.shape[0]
-    ne = n - 1
-    # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
-    nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
-    vh = v3[2]
+def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
+    """``M = d eps / d e`` at ``x_hat`` (rows of the attitude chart, columns of the aligned one; ``aligned``'s
+    ``errorstate.error_map @ chart_jacobian``) by rows of non-zeros (``cnt``, ``cols``, ``vals``); ``D = D(q_hat)``
+    and ``vh = D P_bar_hat`` from ``_local``; ``Wp`` gets the point columns' coefficients of the rho and rho_dot
+    rows (``_block_points``)."""
+    ne = cnt.shape[0]
     wh = xh[6:9]
-    # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too)
-    if not _cholesky(P, L):
-        return False
-    _forward(L, e, w)
-    out[0] = _dot(w, w, 0, ne)
-    # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
-    # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
-    # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
-    # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
-    _gauge_forward(L, U, N)
-    for j in range(3):
-        for k in range(j):
-            s = _dot_row(U, k, U[j], 12, ne)
-            for i in range(12, ne):
-                U[j, i] -= s * U[k, i]
-        s = math.sqrt(_dot_row(U, j, U[j], 12, ne))
-        for i in range(12, ne):
-            U[j, i] /= s
-    for j in range(3):
-        s = _dot_row(U, j, w, 12, ne)
-        for i in range(12, ne):
-            w[i] -= s * U[j, i]
-    out[1] = _dot(w, w, 0, ne)
-    _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
-    # --- M = d eps / d e at x_hat (rows of the attitude chart, columns of the aligned one), by rows of non-zeros
     for r in range(ne):
         cnt[r] = 0
     for r in range(3):
@@ -282,6 +269,39 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt
         _put(cnt, cols, vals, 14 + 3 * i, 10, p[0])
     for j in range(2):
         _put(cnt, cols, vals, ne - 2 + j, ne - 2 + j, 1.0)
+
+
+@njit(**_JIT)
+def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
+    n = xh.shape[0]
+    ne = n - 1
+    # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
+    nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
+    # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too)
+    if not _cholesky(P, L):
+        return False
+    _forward(L, e, w)
+    out[0] = _dot(w, w, 0, ne)
+    # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
+    # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
+    # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
+    # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
+    _gauge_forward(L, U, N)
+    for j in range(3):
+        for k in range(j):
+            s = _dot_row(U, k, U[j], 12, ne)
+            for i in range(12, ne):
+                U[j, i] -= s * U[k, i]
+        s = math.sqrt(_dot_row(U, j, U[j], 12, ne))
+        for i in range(12, ne):
+            U[j, i] /= s
+    for j in range(3):
+        s = _dot_row(U, j, w, 12, ne)
+        for i in range(12, ne):
+            w[i] -= s * U[j, i]
+    out[1] = _dot(w, w, 0, ne)
+    _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
+    _attitude_rows(xh, N, D, v3[2], cnt, cols, vals, Wp)
     for c in range(ne):
         Sp[0, c] = 0.0
         Sp[1, c] = 0.0
@@ -440,12 +460,58 @@ def _one_full(xh, P, Lp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
     out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
     out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
     out[5] = _mahalanobis(eps[9:12], Ca, Lb, w)
-    out[6] = np.nan  # the points' block (3N x 3N) by LAPACK's potrf: cheaper than the written-out one from ~15
-    Lpt = Lb[: 3 * N, : 3 * N]
-    if _cholesky(P[13 : p1 + 1, 13 : p1 + 1], Lpt):
-        _forward(Lpt, eps[12:p1], w[: 3 * N])
-        out[6] = _dot(w, w, 0, 3 * N)
+    out[6] = _mahalanobis_lapack(eps[12:p1], P[13 : p1 + 1, 13 : p1 + 1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
     out[7] = _mahalanobis(eps[p1:ne], P[p1 + 1 : n, p1 + 1 : n], Lb[: ne - p1, : ne - p1], w[: ne - p1])
+
+
+@njit(**_JIT)
+def _one_att(xh, P, Lp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R, dq, tmp, v3, Wp):
+    """``_one`` for an attitude error state's covariance ``P = Lp Lp^T`` (its own Cholesky factor), without mapping.
+
+    The aligned chart's covariance is ``Pa = M^-1 P M^-T`` with ``M = T_attitude S_aligned`` at
+    ``x_hat`` (``_attitude_rows``; for a unit quaternion ``M^-1 = T_aligned S_attitude`` exactly,
+    ``nees_batch``), so the NEES of ``e`` with ``Pa`` is ``|Lp^-1 M e|^2``; the gauge-projected one
+    projects that vector off ``Lp^-1 M G`` (``G`` the 3 gauge columns; modified Gram-Schmidt, as
+    ``_one``), and the attitude chart's blocks of ``M Pa M^T = P`` are ``P``'s own diagonal blocks.
+    The same NEES as ``_one`` on ``M^-1 P M^-T``, to round-off, with no product of ``P``.
+    ``W (5, n-1)``: scratch.
+    """
+    ne = xh.shape[0] - 1
+    nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
+    _attitude_rows(xh, N, D, v3[2], cnt, cols, vals, Wp)
+    p1 = 12 + 3 * N
+    # W[0] = M e; W[1 + j] = M G_j (G_j: 1 on every point's row 12 + 3 i + j); W[4] unused (zero)
+    for r in range(ne):
+        s, g0, g1, g2 = 0.0, 0.0, 0.0, 0.0
+        for k in range(cnt[r]):
+            c = cols[r, k]
+            v = vals[r, k]
+            s += v * e[c]
+            if c >= 12 and c < p1:
+                j = (c - 12) % 3
+                if j == 0:
+                    g0 += v
+                elif j == 1:
+                    g1 += v
+                else:
+                    g2 += v
+        W[0, r], W[1, r], W[2, r], W[3, r], W[4, r] = s, g0, g1, g2, 0.0
+    _forward5(Lp, W)
+    out[0] = 0.0
+    for i in range(ne):
+        out[0] += W[0, i] * W[0, i]
+    _project_off(W, 1, 4)
+    out[1] = 0.0
+    for i in range(ne):
+        out[1] += W[0, i] * W[0, i]
+    # --- blocks: P's own (rho, rho_dot, omega, attitude, the points, k)
+    _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
+    out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)
+    out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
+    out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
+    out[5] = _mahalanobis(eps[9:12], P[9:12, 9:12], Lb, w)
+    out[6] = _mahalanobis_lapack(eps[12:p1], P[12:p1, 12:p1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
+    out[7] = _mahalanobis(eps[p1:ne], P[p1:ne, p1:ne], Lb[: ne - p1, : ne - p1], w[: ne - p1])
 
 
 @njit(**_JIT)
@@ -524,8 +590,9 @@ def nees_batch(x_hat, P, x_true, attitude):
     ``P``: the aligned error state's ``(B, n-1, n-1)``; the full state's ``(B, n, n)`` (a
     full-state filter's): the NEES of ``T P T^T``, ``T = aligned.error_map(x_hat)``, from ``P``'s
     own factor (``_one_full``), or, where ``P`` does not factorize, of ``T P T^T`` itself
-    (``_map_full``); or, with ``attitude``, the attitude error state's ``(B, n-1, n-1)``, mapped
-    as ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, ``M = T_attitude S_aligned``) with
+    (``_map_full``); or, with ``attitude``, the attitude error state's ``(B, n-1, n-1)``: the NEES of
+    ``M^-1 P M^-T`` (``aligned.from_attitude_chart``, ``M = T_attitude S_aligned``), from ``P``'s own
+    factor (``_one_att``), or where ``P`` does not factorize of ``M^-1 P M^-T`` itself, with
     ``M^-1 = T_aligned S_attitude`` at the estimate: for a unit quaternion the two charts' maps
     are exact inverses, so no solve (``mc.trial.aligned_covariance``). ``pd``: the estimate and
     covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
@@ -575,7 +642,11 @@ def nees_batch(x_hat, P, x_true, attitude):
         if full and _cholesky(P[t], Lf):  # positive definite: the NEES from P's own factor, nothing mapped
             pd[t] = True
             _one_full(x_hat[t], P[t], Lf, x_true[t], N, out[t], Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
-        elif mapped:  # the NEES of the mapped covariance, as the numpy path, whether or not P itself is PD
+        elif attitude and _cholesky(P[t], Lf[:ne, :ne]):  # the same for an attitude error state's P
+            pd[t] = True
+            _one_att(x_hat[t], P[t], Lf[:ne, :ne], x_true[t], N, out[t], e, eps, cnt, cols, vals, W5[:, :ne], Lb, w, D,
+                     Dt, R, dq, tmp, v3, Wp)  # fmt: skip
+        elif mapped:  # P does not factorize: the NEES of the mapped covariance, as the numpy path (pd stays False)
             if full:
                 _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
             else:  # M^-1 = T_aligned S_attitude
@@ -587,8 +658,6 @@ def nees_batch(x_hat, P, x_true, attitude):
                 _mirror_lower(Pa)
             _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp,
                  v3, Sp, Wp)  # fmt: skip
-            # a full-state P here did not factorize; an attitude-chart P's pd is its own factorization's
-            pd[t] = not full and _cholesky(P[t], Lf[: P.shape[1], : P.shape[1]])
         else:
             pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
                          R, dq, tmp, v3, Sp, Wp)  # fmt: skip
