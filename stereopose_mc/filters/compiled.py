@@ -281,12 +281,12 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
             nd, ndd, cols, chart)  # fmt: skip
     if iterated is None:
-        xo, Po, nu, nis, ok = ku.ekf_update_batch(*args)
+        xo, Po, nu, nis, ok, Lo = ku.ekf_update_batch(*args)
         its, conv = one_iteration, converged
     else:
-        xo, Po, nu, nis, its, conv, ok = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
+        xo, Po, nu, nis, its, conv, ok, Lo = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10)  # fmt: skip
-    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used)
+    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo)
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
         bad = ~ok
@@ -315,7 +315,8 @@ class PartialUpdateError(np.linalg.LinAlgError):
 
 
 def patch(u, bad: Array, v):
-    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields).
+    """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields; where ``v`` has no
+    ``P_factor``, those trials' factors are marked not given: NaN).
 
     Written into ``u``'s own arrays where they can be (the kernels' fresh outputs, which
     nothing else holds: no copy of a ``(B, n, n)`` covariance per step with a failure);
@@ -326,10 +327,13 @@ def patch(u, bad: Array, v):
 
     out = {}
     for f in dataclasses.fields(u):
-        a = getattr(u, f.name)
+        a, b = getattr(u, f.name), getattr(v, f.name, None)
+        if a is None:  # an optional field that u does not have (P_factor)
+            out[f.name] = None
+            continue
         if not (isinstance(a, np.ndarray) and a.flags.writeable):
             a = np.array(a, copy=True)
-        a[bad] = getattr(v, f.name)
+        a[bad] = np.nan if b is None else b  # (only P_factor can be missing from v: NaN marks it not given)
         out[f.name] = a
     return type(u)(**out)
 

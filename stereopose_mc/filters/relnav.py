@@ -74,6 +74,10 @@ class GatedUpdate(kf.Update):
 
     rejected: Array = field(default=None)  # (b,) int: features rejected by the gate
     features_used: Array = field(default=None)  # (b,) int: features that entered the update
+    # (b, n, n) square root R of P = R^T R where the compiled update gives it: the rows of P's upper Cholesky
+    # factor in reverse order (core.kernels.update.iekf_update_batch; NaN at [i, n - 1, 0] where it does not);
+    # None: not given (the NEES then factorize P themselves)
+    P_factor: Array | None = field(default=None)
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):

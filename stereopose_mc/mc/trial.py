@@ -237,7 +237,7 @@ def run_filter(
             x_true_k = true_state(truth.x, k, active)
             e = errors_of(u.x, x_true_k, kernels)
             try:
-                v, pd = nees_and_pd(u.x, u.P, x_true_k, fs.error_state, kernels)
+                v, pd = nees_and_pd(u.x, u.P, x_true_k, fs.error_state, kernels, getattr(u, "P_factor", None))
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)
@@ -388,9 +388,19 @@ def _left_to_numpy(xa, Pa, step, rows, fs, setup, exc):
 
 def _concatenate(updates: list):
     """The updates of consecutive parts of a batch as one (MEKF/UKF updates carry no gate counts: the fields all
-    parts have)."""
+    parts have). ``P_factor`` (given by the compiled update only) is NaN for the parts without one, None if no part
+    has one."""
     cls = relnav.GatedUpdate if all(isinstance(u, relnav.GatedUpdate) for u in updates) else kf.Update
-    return cls(*(np.concatenate([getattr(u, f.name) for u in updates]) for f in dataclasses.fields(cls)))
+    out = {}
+    for f in dataclasses.fields(cls):
+        parts = [getattr(u, f.name) for u in updates]
+        if f.name == "P_factor":
+            if all(p is None for p in parts):
+                out[f.name] = None
+                continue
+            parts = [np.full(u.P.shape, np.nan) if p is None else p for u, p in zip(updates, parts)]
+        out[f.name] = np.concatenate(parts)
+    return cls(**out)
 
 
 def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude", kernels: str = "numpy") -> dict[str, Array]:
@@ -426,17 +436,19 @@ def attitude_covariance(x: Array, P: Array, error_state: str = "attitude") -> Ar
     return P
 
 
-def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
-                kernels: str = "numpy") -> tuple[dict[str, Array], Array | None]:  # fmt: skip
+def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude", kernels: str = "numpy",
+                P_factor: Array | None = None) -> tuple[dict[str, Array], Array | None]:  # fmt: skip
     """``nees_of`` and, from the compiled kernel, whether ``P`` is positive definite.
 
     The second item is None where the numpy path computed the NEES (``_check`` then factorizes ``P``).
+    ``P_factor``: square roots of ``P`` as the compiled update gives them (``GatedUpdate.P_factor``), used by the
+    compiled kernel instead of factorizing ``P`` again.
     """
     if kernels == "compiled":
         from ..core.kernels import consistency  # the same numbers to round-off (tests/core/test_kernels_consistency.py)
 
         attitude = P.shape[-1] != x.shape[-1] and error_state != "aligned"  # aligned_covariance's cases
-        return consistency.nees_and_pd(x, P, x_true, attitude)
+        return consistency.nees_and_pd(x, P, x_true, attitude, P_factor)
     with np.errstate(all="ignore"):
         return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true), None
 

@@ -127,23 +127,6 @@ def test_measurement_jacobian_finite_differences():
     assert np.all(np.abs(H - fd) <= 1e-6 * scale)
 
 
-@pytest.mark.parametrize("n", [5, 32, 33, 70, 100])
-def test_posterior_covariance_blocked_substitution(n):
-    """``L A^-1 L^T`` of the IEKF/EKF kernels (forward substitution blocked past 32 rows, BLAS products) equals
-    numpy's solve, and is exactly symmetric."""
-    from stereopose_mc.core.kernels import update as ku
-
-    rng = np.random.default_rng(n)
-    A1, A2 = rng.standard_normal((2, n, n))
-    P, A = A1 @ A1.T + n * np.eye(n), A2 @ A2.T + np.eye(n)
-    L, LA = np.linalg.cholesky(P), np.linalg.cholesky(A)
-    out, X = np.empty((n, n)), np.empty((n, n))
-    ku._posterior_covariance(L, LA, out, X)
-    ref = L @ np.linalg.solve(A, L.T)
-    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
-    assert np.array_equal(out, out.T)
-
-
 @pytest.mark.parametrize("n", [1, 3, 70, 134])
 def test_cholesky_on_the_transposed_layout(n):
     """``_cholesky_t`` (``potrf`` with ``uplo = "L"`` on the transposed copy) equals numpy's factor of ``A``, or
@@ -167,39 +150,41 @@ def test_cholesky_on_the_transposed_layout(n):
     assert not ku._cholesky_t(bad, L, False)
 
 
-@pytest.mark.parametrize("n", [1, 5, 32, 33, 70, 134])
+@pytest.mark.parametrize("n", [1, 5, 32, 33, 64, 65, 70, 134])
 def test_reverse_factor_solve_and_posterior_covariance(n):
-    """``_factor(A, LA, rev=True)`` is the Cholesky factor of ``A`` in reverse order (``A = U U^T``, ``U = J LA J``
-    upper triangular); ``_solve`` with it equals numpy's solve; ``_posterior_covariance_rev`` (``L U^-T``, lower
-    triangular, times its transpose; blocked past 32 rows) equals ``L A^-1 L^T`` by numpy and the other path, and
-    is exactly symmetric; False on a matrix that is not positive definite."""
+    """``_factor(A, LA)`` is the Cholesky factor of ``A`` in reverse order (``A = U U^T``, ``U = J LA J`` upper
+    triangular; up to 64 columns copied and factorized in place, past it on the transposed layout), reading only
+    ``A``'s lower triangle; ``_solve`` with it equals numpy's solve; ``_posterior_covariance_rev`` (``L U^-T``, lower
+    triangular, times its transpose; blocked past 16 rows) equals ``L A^-1 L^T`` by numpy, is exactly symmetric,
+    and leaves in ``W`` the square root ``J M^T`` of it, ``M`` its Cholesky factor; False on a matrix that is not
+    positive definite."""
     from stereopose_mc.core.kernels import update as ku
 
     rng = np.random.default_rng(200 + n)
     A1, A2 = rng.standard_normal((2, n, n))
     P, A = A1 @ A1.T + n * np.eye(n), A2 @ A2.T + np.eye(n)
+    Alow = np.tril(A) + np.triu(np.full((n, n), np.nan), 1)  # the upper triangle must not be read
     L = np.linalg.cholesky(P)
     LA = np.full((n, n), np.nan)
-    assert ku._factor(A, LA, True)
+    assert ku._factor(Alow, LA)
     U = LA[::-1, ::-1]
     assert np.all(np.tril(U, -1) == 0.0)
     np.testing.assert_allclose(U @ U.T, A, rtol=0, atol=1e-12 * np.abs(A).max())
     b = rng.standard_normal(n)
     x = b.copy()
-    ku._solve(LA, x, True)
+    ku._solve(LA, x)
     np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10 * np.abs(b).max())
     out, W = np.full((n, n), np.nan), np.full((n, n), np.nan)
     ku._posterior_covariance_rev(L, LA, out, W)
     ref = L @ np.linalg.solve(A, L.T)
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(out, out.T)
-    LA2, out2 = np.empty((n, n)), np.empty((n, n))
-    assert ku._factor(A, LA2, False)
-    ku._posterior_covariance(L, LA2, out2, W)
-    np.testing.assert_allclose(out, out2, rtol=0, atol=1e-12 * np.abs(ref).max())
+    Mt = W[::-1]  # M^T: upper triangular, positive diagonal, the Cholesky factor of out
+    assert np.all(np.tril(Mt, -1) == 0.0) and np.all(np.diag(Mt) > 0.0)
+    np.testing.assert_allclose(Mt.T, np.linalg.cholesky(ref), rtol=0, atol=1e-11 * np.abs(Mt).max())
     bad = A.copy()
     bad[0, 0] = -1.0
-    assert not ku._factor(bad, LA, True)
+    assert not ku._factor(bad, LA)
 
 
 def _centering(N, n):
@@ -438,7 +423,8 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
         "assert ku._cholesky(A, L)\n"
         "x = np.zeros((2, 30)); x[:, 9] = 1.0; x[:, 13:28] = rng.standard_normal((2, 15)); xt = x.copy()\n"
         "xt[:, 0] += 0.1\n"
-        "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt, False)\n"
+        "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt, False,\n"
+        "                        np.empty((0, 29, 29)))\n"
         "assert pd.all() and np.isfinite(out).all(), out\n"
         "print('ok', round(float(out[0, 0]), 6))\n"
     )
@@ -447,7 +433,8 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
     x[:, 13:28] = np.random.default_rng(0).standard_normal((2, 15))
     from stereopose_mc.core.kernels import consistency as kc
 
-    kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), x.copy(), False)  # compiled, cached here
+    kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), x.copy(), False,
+                  np.empty((0, 29, 29)))  # compiled, cached here
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     for _ in range(2):  # the first may still compile (another specialization); the second loads from the cache
         r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)

@@ -312,8 +312,9 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
 
 @pytest.mark.parametrize("N", [1, 2, 5, 8])
 def test_gauge_columns_are_solved_like_a_triangular_solve(N):
-    """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, against
-    scipy's triangular solve; zero above the points' rows."""
+    """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, ``L``
+    given as the square root ``R = J L^T`` (the compiled update's layout), against scipy's triangular solve; zero
+    above the points' rows."""
     from scipy.linalg import solve_triangular
 
     ne = 14 + 3 * N
@@ -322,10 +323,44 @@ def test_gauge_columns_are_solved_like_a_triangular_solve(N):
     G = np.zeros((ne, 3))
     G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1))
     U = np.full((3, ne), np.nan)
-    kc._gauge_forward(L, U, N)
+    kc._gauge_forward(np.ascontiguousarray(L.T[::-1]), U, N)
     want = solve_triangular(L, G, lower=True).T
     np.testing.assert_allclose(U, want, rtol=1e-13, atol=1e-15)
     assert np.all(U[:, :12] == 0.0)
+
+
+@pytest.mark.parametrize("n", [1, 2, 15, 30, 41])
+def test_square_root_layout_solves_and_factor(n):
+    """The NEES's layout of ``P``'s factor: ``R = J U`` (``P = U^T U = R^T R``, the rows of the upper Cholesky factor
+    reversed). ``_own_root`` builds it from ``P`` (``R^T R = P``, numpy's factor reversed; False where ``P`` is not
+    positive definite); ``_forward_r`` and ``_forward5`` solve ``L x = b`` with ``L = U^T`` as scipy does;
+    ``_factor_given`` accepts it and rejects a NaN marker at ``U[0, 0]`` or a non-positive pivot."""
+    from scipy.linalg import solve_triangular
+
+    M = RNG.standard_normal((n, n))
+    P = M @ M.T + n * np.eye(n)
+    Uf, R = np.empty((n, n)), np.empty((n, n))
+    assert kc._own_root(P, Uf, R)
+    L = np.linalg.cholesky(P)
+    np.testing.assert_allclose(R, L.T[::-1], rtol=0, atol=1e-13 * np.abs(L).max())
+    np.testing.assert_allclose(R.T @ R, P, rtol=0, atol=1e-12 * np.abs(P).max())
+    b = RNG.standard_normal(n)
+    out = np.empty(n)
+    kc._forward_r(R, b, out)
+    np.testing.assert_allclose(out, solve_triangular(L, b, lower=True), rtol=1e-12, atol=1e-14)
+    W = RNG.standard_normal((5, n))
+    W2 = W.copy()
+    kc._forward5(R, W2)
+    np.testing.assert_allclose(W2, solve_triangular(L, W.T, lower=True).T, rtol=1e-12, atol=1e-14)
+    assert kc._factor_given(R)
+    bad = R.copy()
+    bad[n - 1, 0] = np.nan  # U[0, 0]: the update's marker of a factor not given
+    assert not kc._factor_given(bad)
+    bad = R.copy()
+    bad[0, n - 1] = 0.0  # U[n-1, n-1]
+    assert not kc._factor_given(bad)
+    P[0, 0] = -1.0
+    assert not kc._own_root(P, Uf, R)
 
 
 def test_compiled_errors_equal_the_numpy_errors():
@@ -345,3 +380,35 @@ def test_compiled_errors_equal_the_numpy_errors():
         assert np.isnan(got[3, 0]) and np.isfinite(got[3, 1:]).all() and np.isnan(got[4, 3])
         np.testing.assert_allclose(kc.errors(xh, xt[0]), one, rtol=1e-14, atol=0)
         assert np.nanmax(got[:, 3]) > 1.0  # degrees: the attitude errors are not all tiny
+
+
+@pytest.mark.parametrize("chart", ["aligned", "attitude", "full"])
+def test_nees_from_a_given_square_root_equal_those_that_factorize_p(chart):
+    """``nees_and_pd(..., P_factor=R)`` with ``R = J U`` (``P = U^T U``, as the compiled update gives it): the same
+    NEES to round-off as factorizing ``P`` in the kernel, ``pd`` True; a trial whose factor is marked not given
+    (NaN at ``U[0, 0]``) takes ``P``'s own factorization, so its NEES are those computed without any factor, bit for
+    bit, and so is ``pd`` where ``P`` is not positive definite. A factor shaped unlike ``P`` is refused."""
+    rng = np.random.default_rng(11)
+    if chart == "full":
+        xh, P = _full_state_case(12, 5, rng)
+        xt = xh.copy()
+        xt[:, :9] += 0.01 * rng.standard_normal((len(xh), 9))
+    else:
+        xh, P, xt = _case(12, 5)
+        if chart == "attitude":
+            P = aligned.to_attitude_chart(xh, P)
+    attitude = chart == "attitude"
+    P[3] = -P[3]  # not positive definite: no factor, pd False
+    R = np.empty_like(P)
+    for b in range(len(P)):
+        R[b] = np.linalg.cholesky(P[b]).T[::-1] if b != 3 else np.nan
+    R[5, -1, 0] = np.nan  # marked not given
+    ref, pd_ref = kc.nees_and_pd(xh, P, xt, attitude)
+    got, pd = kc.nees_and_pd(xh, P, xt, attitude, R)
+    np.testing.assert_array_equal(pd, pd_ref)
+    assert pd.sum() == len(P) - 1 and not pd[3]
+    for k in kc.KEYS:
+        np.testing.assert_allclose(got[k], ref[k], rtol=1e-9, err_msg=k)
+        np.testing.assert_array_equal(got[k][[3, 5]], ref[k][[3, 5]], err_msg=k)
+    with pytest.raises(ValueError, match="P_factor"):
+        kc.nees_and_pd(xh, P, xt, attitude, R[:, 1:, 1:])

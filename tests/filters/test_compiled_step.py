@@ -308,6 +308,26 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
+def _check_square_root(u, given):
+    """The compiled update's ``P_factor``: for the trials ``given`` a square root ``R = J U`` of ``P+`` (``U`` upper
+    triangular with a positive diagonal, ``R^T R = P+`` to round-off: P's own Cholesky factor, reversed), the others
+    marked not given (NaN at ``U[0, 0]``); the NEES from it equal those that factorize ``P+`` itself."""
+    from stereopose_mc.core.kernels import consistency as kc
+
+    R, P = u.P_factor, u.P
+    n = P.shape[-1]
+    given = np.broadcast_to(given, (len(P),))
+    assert R.shape == P.shape
+    for b in np.flatnonzero(given):
+        U = R[b][::-1]
+        assert np.all(np.tril(U, -1) == 0.0) and np.all(np.diag(U) > 0.0)
+        np.testing.assert_allclose(U.T @ U, P[b], rtol=0, atol=1e-13 * np.abs(P[b]).max())
+        np.testing.assert_allclose(U, np.linalg.cholesky(P[b]).T, rtol=0, atol=1e-11 * np.abs(U).max())
+    assert np.all(np.isnan(R[~given, n - 1, 0]))
+    assert [kc._factor_given(r) for r in R] == given.tolist()
+    return R
+
+
 def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control="line_search", N=None, full=False):
     """A case-B aligned prior (random P, state drawn from it about the truth) and its step, with loose R.
 
@@ -372,6 +392,7 @@ def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind,
     np.testing.assert_allclose(b.nu, a.nu, rtol=0, atol=1e-14)
     for f in ("iterations", "converged", "rejected", "features_used"):
         np.testing.assert_array_equal(getattr(b, f), getattr(a, f), f)
+    _check_square_root(b, True)
     if masked:
         assert a.rejected[0] >= 1 and (a.features_used < vis.sum()).any()
     if kind == "iekf":
@@ -416,6 +437,7 @@ def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error
         np.testing.assert_allclose(b.nis, a.nis, rtol=1e-9)
         for f in ("iterations", "converged", "rejected", "features_used"):
             np.testing.assert_array_equal(getattr(b, f), getattr(a, f), f)
+        _check_square_root(b, error_state != "aligned")  # the centered coordinates' factor is not triangular
         if masked:
             assert a.rejected[0] >= 1
 
@@ -434,6 +456,7 @@ def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
     np.testing.assert_array_equal(b.x[2], one.x[0])
     np.testing.assert_array_equal(b.P[2], one.P[0])
     ok = rows != 2
+    _check_square_root(b, ok)  # numpy's update gives no factor
     s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
     assert np.max(np.abs(aligned.local(a.x[ok], b.x[ok])) / s) < 1e-11
     x, P, step, fs, setup = _aligned_step("iekf")
@@ -551,6 +574,7 @@ def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_res
     assert why == why_v and [bool(r) for r in why] == [i in failing for i in rows]
     for f in dataclasses.fields(u):
         np.testing.assert_array_equal(getattr(u, f.name), getattr(v, f.name), f.name)
+    _check_square_root(u, [i not in failing for i in rows])  # the trials numpy updated: marked not given
 
 
 def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
@@ -573,7 +597,19 @@ def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
     assert w.rejected is not const and (const == 0).all()
     for f in dataclasses.fields(w):
         got, want = getattr(w, f.name), getattr(v, f.name)
+        if f.name == "P_factor":  # given by neither
+            assert got is None and want is None
+            continue
         np.testing.assert_array_equal(got[bad], want, f.name)
     np.testing.assert_array_equal(w.x[~bad], before["x"][~bad])
     np.testing.assert_array_equal(w.P[~bad], before["P"][~bad])
     np.testing.assert_array_equal(w.rejected[~bad], 0)
+    # the compiled update's square roots of P: numpy's update gives none, so the patched trials' are marked not
+    # given (NaN), the others' kept in place
+    R = rng.random((B, n, n))
+    kept = R.copy()
+    u = dataclasses.replace(u, P_factor=R)
+    w = compiled.patch(u, bad, v)
+    assert w.P_factor is R
+    assert np.isnan(w.P_factor[bad]).all()
+    np.testing.assert_array_equal(w.P_factor[~bad], kept[~bad])

@@ -46,7 +46,7 @@ from . import attitude as _att
 from . import writable as _writable
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .model import _dot, _dot_row, _mirror_lower
-from .update import _cholesky, _cholesky_small, _forward
+from .update import _cholesky, _cholesky_small, _cholesky_upper, _forward
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -183,13 +183,27 @@ def _put(cnt, cols, vals, r, c, v):
 
 
 @njit(**_JIT)
-def _gauge_forward(L, U, N):
-    """``U[j] = L^-1 G_j`` for the 3 gauge columns at once (``G_j``: 1 on every point's row ``12 + 3 i + j``).
+def _forward_r(R, b, out):
+    """``out = L^-1 b`` for ``P = L L^T`` given as its square root ``R = J L^T`` (``P = R^T R``: the rows of the upper
+    factor ``L^T`` in reverse order, as the compiled update gives them): forward substitution, ``L[i, k] = R[n - 1 -
+    k, i]`` (by rows of ``L``: one running sum per row, the columns of ``R`` read with their stride)."""
+    n = R.shape[0]
+    for i in range(n):
+        t = b[i]
+        for k in range(i):
+            t -= R[n - 1 - k, i] * out[k]
+        out[i] = t / R[n - 1 - i, i]
+
+
+@njit(**_JIT)
+def _gauge_forward(R, U, N):
+    """``U[j] = L^-1 G_j`` for the 3 gauge columns at once (``G_j``: 1 on every point's row ``12 + 3 i + j``), ``L``
+    given by ``R`` as in ``_forward_r``.
 
     ``G``, hence ``U``, is zero above the points' rows (12): forward substitution from there,
     the three right-hand sides in one pass over ``L`` (three independent sums per row).
     """
-    ne = L.shape[0]
+    ne = R.shape[0]
     for j in range(3):
         for i in range(12):
             U[j, i] = 0.0
@@ -200,11 +214,11 @@ def _gauge_forward(L, U, N):
         s1 = 1.0 if p and j == 1 else 0.0
         s2 = 1.0 if p and j == 2 else 0.0
         for k in range(12, i):
-            c = L[i, k]
+            c = R[ne - 1 - k, i]
             s0 -= c * U[0, k]
             s1 -= c * U[1, k]
             s2 -= c * U[2, k]
-        d = L[i, i]
+        d = R[ne - 1 - i, i]
         U[0, i] = s0 / d
         U[1, i] = s1 / d
         U[2, i] = s2 / d
@@ -272,21 +286,22 @@ def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
 
 
 @njit(**_JIT)
-def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp):
+def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf, given):
     n = xh.shape[0]
     ne = n - 1
     # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
     nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
-    # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too)
-    if not _cholesky(P, L):
+    # --- full NEES: |w|^2, w = L^-1 e, P = L L^T (one factorization serves the gauge NEES too), given as
+    # ``Rc = J L^T`` (``given``: the compiled update's), or factorized here (``_own_root``, ``Uf`` scratch)
+    if not (given or _own_root(P, Uf, Rc)):
         return False
-    _forward(L, e, w)
+    _forward_r(Rc, e, w)
     out[0] = _dot(w, w, 0, ne)
     # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
     # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
     # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
     # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
-    _gauge_forward(L, U, N)
+    _gauge_forward(Rc, U, N)
     for j in range(3):
         for k in range(j):
             s = _dot_row(U, k, U[j], 12, ne)
@@ -352,20 +367,20 @@ def _preimage(Tm, e, dx, N):
 
 
 @njit(**_JIT)
-def _forward5(L, W):
-    """``W[j] <- L^-1 W[j]`` for the 5 rows of ``W`` in one pass over ``L`` (lower triangular): five running sums
-    per row of ``L``, each row of ``L`` read once."""
-    n = L.shape[0]
+def _forward5(R, W):
+    """``W[j] <- L^-1 W[j]`` for the 5 rows of ``W`` in one pass over ``L`` (``P = L L^T`` given by ``R``, as in
+    ``_forward_r``): five running sums per row of ``L``, each entry read once."""
+    n = R.shape[0]
     for i in range(n):
         s0, s1, s2, s3, s4 = W[0, i], W[1, i], W[2, i], W[3, i], W[4, i]
         for k in range(i):
-            c = L[i, k]
+            c = R[n - 1 - k, i]
             s0 -= c * W[0, k]
             s1 -= c * W[1, k]
             s2 -= c * W[2, k]
             s3 -= c * W[3, k]
             s4 -= c * W[4, k]
-        d = L[i, i]
+        d = R[n - 1 - i, i]
         W[0, i], W[1, i], W[2, i], W[3, i], W[4, i] = s0 / d, s1 / d, s2 / d, s3 / d, s4 / d
 
 
@@ -399,8 +414,9 @@ def _project_off(W, j0, j1):
 
 
 @njit(**_JIT)
-def _one_full(xh, P, Lp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, v3):
-    """``_one`` for a full-state covariance ``P = Lp Lp^T`` (its own Cholesky factor), without mapping ``P``.
+def _one_full(xh, P, Rp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, v3):
+    """``_one`` for a full-state covariance ``P = Lp Lp^T`` (its own Cholesky factor, given as ``Rp = J Lp^T``:
+    ``_forward_r``), without mapping ``P``.
 
     ``T = aligned.error_map(x_hat)`` has full row rank and ``T t = 0``, ``t = (0, q/|q|, 0)``, so
     the NEES of ``e`` with ``T P T^T`` is the least ``P``-Mahalanobis norm of an ``x``-space
@@ -433,7 +449,7 @@ def _one_full(xh, P, Lp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
             for i in range(N):
                 s += Tm[r, 13 + 3 * i + j]
             g[r] = -s
-    _forward5(Lp, W)
+    _forward5(Rp, W)
     out[1] = 0.0
     out[0] = _project_off(W, 1, 5)
     for i in range(n):
@@ -465,8 +481,9 @@ def _one_full(xh, P, Lp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
 
 
 @njit(**_JIT)
-def _one_att(xh, P, Lp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R, dq, tmp, v3, Wp):
-    """``_one`` for an attitude error state's covariance ``P = Lp Lp^T`` (its own Cholesky factor), without mapping.
+def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R, dq, tmp, v3, Wp):
+    """``_one`` for an attitude error state's covariance ``P = Lp Lp^T`` (its own Cholesky factor, given as
+    ``Rp = J Lp^T``: ``_forward_r``), without mapping.
 
     The aligned chart's covariance is ``Pa = M^-1 P M^-T`` with ``M = T_attitude S_aligned`` at
     ``x_hat`` (``_attitude_rows``; for a unit quaternion ``M^-1 = T_aligned S_attitude`` exactly,
@@ -496,7 +513,7 @@ def _one_att(xh, P, Lp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
                 else:
                     g2 += v
         W[0, r], W[1, r], W[2, r], W[3, r], W[4, r] = s, g0, g1, g2, 0.0
-    _forward5(Lp, W)
+    _forward5(Rp, W)
     out[0] = 0.0
     for i in range(ne):
         out[0] += W[0, i] * W[0, i]
@@ -584,7 +601,32 @@ def _finite(v):
 
 
 @njit(**_JIT)
-def nees_batch(x_hat, P, x_true, attitude):
+def _own_root(P, U, R):
+    """``R = J U``, ``U`` the upper Cholesky factor of ``P`` (``P = U^T U = R^T R``), the layout of the compiled
+    update's square roots (``nees_batch``); False if ``P`` is not positive definite (``_cholesky_upper``)."""
+    if not _cholesky_upper(P, U):
+        return False
+    n = U.shape[0]
+    for j in range(n):
+        for i in range(n):
+            R[j, i] = U[n - 1 - j, i]
+    return True
+
+
+@njit(**_JIT)
+def _factor_given(R):
+    """Whether the square root ``R = J U`` (``nees_batch``'s ``Rg``) is given: the diagonal of ``U``
+    (``R[n - 1 - i, i]``) is finite and positive (NaN at ``U[0, 0]`` marks a missing one)."""
+    n = R.shape[0]
+    for i in range(n):
+        d = R[n - 1 - i, i]
+        if not (d > 0.0 and d < np.inf):
+            return False
+    return True
+
+
+@njit(**_JIT)
+def nees_batch(x_hat, P, x_true, attitude, Rg):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
     ``P``: the aligned error state's ``(B, n-1, n-1)``; the full state's ``(B, n, n)`` (a
@@ -598,6 +640,12 @@ def nees_batch(x_hat, P, x_true, attitude):
     covariance are finite and ``P`` (as given) is positive definite (its Cholesky factorization
     went through). Every NEES is NaN where the state or ``P`` is not finite, or the aligned
     covariance is not positive definite.
+
+    ``Rg``: ``(B, m, m)``, square roots ``R = J U`` of ``P = R^T R`` (the rows of ``P``'s upper Cholesky
+    factor ``U`` in reverse order) where the caller has them (the compiled update's ``R+``), or
+    ``(0, m, m)``. A trial's is used where the diagonal of ``U`` is finite and positive
+    (``_factor_given``; the update marks a missing one with NaN): ``P`` is then positive definite
+    (``pd``) and is not factorized again.
     """
     B, n = x_hat.shape
     ne = n - 1
@@ -614,7 +662,9 @@ def nees_batch(x_hat, P, x_true, attitude):
     Pt = np.empty((n, ne))
     Sm = np.empty((3, n))  # the map's point sums (rows of P: n wide)
     Pa = np.empty((ne, ne))
-    Lf = np.empty((n, n))
+    Uf = np.empty((P.shape[1], P.shape[1]))  # P's upper Cholesky factor where it is not given
+    Rf = np.empty((P.shape[1], P.shape[1]))  # its rows in reverse order
+    Lr = np.empty((ne, ne))  # the same for a mapped covariance (L: its factor)
     e = np.empty(ne)
     eps = np.empty(ne)
     cnt = np.zeros(ne, np.int64)
@@ -639,13 +689,15 @@ def nees_batch(x_hat, P, x_true, attitude):
     for t in range(B):
         if not (_finite(x_hat[t]) and _finite(x_true[t]) and _finite(P[t].ravel())):
             continue
-        if full and _cholesky(P[t], Lf):  # positive definite: the NEES from P's own factor, nothing mapped
+        given = Rg.shape[0] == B and _factor_given(Rg[t])
+        Rt = Rg[t] if given else Rf  # P's square root J U (P = U^T U): given, or factorized here (_own_root)
+        if full and (given or _own_root(P[t], Uf, Rf)):  # positive definite: the NEES from P's own factor
             pd[t] = True
-            _one_full(x_hat[t], P[t], Lf, x_true[t], N, out[t], Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
-        elif attitude and _cholesky(P[t], Lf[:ne, :ne]):  # the same for an attitude error state's P
+            _one_full(x_hat[t], P[t], Rt, x_true[t], N, out[t], Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
+        elif attitude and (given or _own_root(P[t], Uf, Rf)):  # the same for an attitude error state's P
             pd[t] = True
-            _one_att(x_hat[t], P[t], Lf[:ne, :ne], x_true[t], N, out[t], e, eps, cnt, cols, vals, W5[:, :ne], Lb, w, D,
-                     Dt, R, dq, tmp, v3, Wp)  # fmt: skip
+            _one_att(x_hat[t], P[t], Rt, x_true[t], N, out[t], e, eps, cnt, cols, vals, W5[:, :ne], Lb, w, D, Dt, R,
+                     dq, tmp, v3, Wp)  # fmt: skip
         elif mapped:  # P does not factorize: the NEES of the mapped covariance, as the numpy path (pd stays False)
             if full:
                 _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
@@ -656,11 +708,11 @@ def nees_batch(x_hat, P, x_true, attitude):
                 np.dot(Mi, P[t], C)
                 np.dot(C, Mi.T, Pa)
                 _mirror_lower(Pa)
-            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp,
-                 v3, Sp, Wp)  # fmt: skip
+            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp,
+                 v3, Sp, Wp, L, False)  # fmt: skip
         else:
-            pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt,
-                         R, dq, tmp, v3, Sp, Wp)  # fmt: skip
+            pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, Rt, Lb, w, U, u, Y, D, Dt,
+                         R, dq, tmp, v3, Sp, Wp, Uf, given)  # fmt: skip
     return out, pd
 
 
@@ -670,9 +722,17 @@ def nees_report(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray, attitude: 
     return nees_and_pd(x_hat, P, x_true, attitude)[0]
 
 
-def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray,
-                attitude: bool = False) -> tuple[dict[str, np.ndarray], np.ndarray]:  # fmt: skip
-    """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite."""
-    x_hat = _writable(x_hat)
-    out, pd = nees_batch(x_hat, _writable(P), _writable(np.broadcast_to(x_true, x_hat.shape)), bool(attitude))
+def nees_and_pd(x_hat: np.ndarray, P: np.ndarray, x_true: np.ndarray, attitude: bool = False,
+                P_factor: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:  # fmt: skip
+    """``nees_report`` and, per trial, whether ``(x_hat, P)`` is finite with ``P`` positive definite.
+
+    ``P_factor``: square roots of ``P`` as the compiled update gives them (``nees_batch``'s ``Rg``), or None."""
+    x_hat, P = _writable(x_hat), _writable(P)
+    if P_factor is None:
+        Rg = np.empty((0,) + P.shape[1:])
+    elif P_factor.shape == P.shape:
+        Rg = _writable(P_factor)
+    else:
+        raise ValueError(f"P_factor {P_factor.shape} is not shaped as P {P.shape}")
+    out, pd = nees_batch(x_hat, P, _writable(np.broadcast_to(x_true, x_hat.shape)), bool(attitude), Rg)
     return {k: out[:, j] for j, k in enumerate(KEYS)}, pd

@@ -28,11 +28,14 @@ Past ``LARGE_N`` (64) columns the update exploits more structure (issue 14, grow
 the number of points): the rows of ``Hw`` stop where ``L`` is zero (``_whiten_staircase``: the
 Gram product by strips over the rows that reach them), the aligned chart is whitened in
 centered point coordinates (``_center_cov``: the points' mean and their deviations, so that
-the unmeasured centroid does not cancel in the product), and ``A`` is factorized in reverse
-order (``_factor``) so that ``P+ = L A^-1 L^T = M M^T`` with ``M`` lower triangular
-(``_posterior_covariance_rev``). Up to 64 columns (case B's 29; 20 points) the kernels are as
-before: there the extra passes cost more than they save (measured: 13 points even, 10 points
-8 % slower, 20 points 5-10 % faster, 40 points 15-25 %).
+the unmeasured centroid does not cancel in the product). Up to 64 columns (case B's 29; 20
+points) the kernels do without: there the extra passes cost more than they save (measured: 13
+points even, 10 points 8 % slower, 20 points 5-10 % faster, 40 points 15-25 %).
+
+At every size ``A`` is factorized in reverse order (``_factor``), so that ``P+ = L A^-1 L^T =
+M M^T`` with ``M`` lower triangular (``_posterior_covariance_rev``): ``P+``'s own Cholesky
+factor comes with it, which the kernels return (as ``J M^T``) for the NEES to use instead of
+factorizing ``P+`` again (``core.kernels.consistency.nees_batch``).
 
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
@@ -139,6 +142,23 @@ def _cholesky_t(A, L, rev):
             L[j, i] = L[i, j]
             L[i, j] = 0.0
     return True
+
+
+@njit(**_JIT)
+def _cholesky_upper(A, U):
+    """Upper ``U`` with ``U^T U = A`` (only the lower triangle of ``A`` is read); False if not PD.
+
+    ``potrf`` with ``uplo = "L"`` on ``U`` as column-major memory, where the C-order upper triangle
+    is the lower one: the factor ``U = L^T`` of ``_cholesky``, whose rows in reverse order the NEES read
+    (``core.kernels.consistency``), as they read the compiled update's ``R+``.
+    """
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            U[i, j] = 0.0
+        for j in range(i, n):
+            U[i, j] = A[j, i]
+    return _potrf(U, _UPLO_L)
 
 
 @njit(**_JIT)
@@ -272,11 +292,12 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     A Python call of the compiled ``iekf_update_batch`` with one plain Gauss-Newton step (not a
     kernel of its own: that was a second copy of the same machine code to load at start-up).
 
-    Returns ``(x+, P+, nu, nis, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
+    Returns ``(x+, P+, nu, nis, ok, R+)`` (``R+`` as ``iekf_update_batch``'s); in the full chart the quaternion
+    of ``x+`` is renormalized.
     """
-    xo, Po, nu, nis, _, _, ok = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha,
-                                                  nd, ndd, cols, chart, 0.0, 1, 0, 1, 0)  # fmt: skip
-    return xo, Po, nu, nis, ok
+    xo, Po, nu, nis, _, _, ok, Ro = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
+                                                      alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0)  # fmt: skip
+    return xo, Po, nu, nis, ok, Ro
 
 
 @njit(**_JIT)
@@ -535,58 +556,29 @@ def _mul_t(M, v, out):
 
 
 @njit(**_JIT)
-def _posterior_covariance(L, LA, out, X):
-    """``out = L A^-1 L^T`` with ``A = LA LA^T``: ``X = LA^-1 L^T`` (forward substitution by rows), ``out = X^T X``
-    (BLAS, lower triangle mirrored: exactly symmetric).
+def _factor(A, LA):
+    """The Cholesky factor of ``A`` in reverse order: ``LA`` lower with ``LA LA^T = J A J`` (``J`` the reversal of
+    the indices), i.e. ``A = U U^T`` with ``U = J LA J`` upper triangular (``_solve``; ``P+ = L A^-1 L^T = M M^T``
+    with ``M = L U^-T`` lower triangular, ``_posterior_covariance_rev``, whose square root the NEES reuse). Only the
+    lower triangle of ``A`` is read, as by ``_cholesky``. False if ``A`` is not positive definite.
 
-    Past ``SOLVE_BLOCK`` rows the substitution is blocked: a block of rows first takes off the
-    contribution of the rows solved before it in one BLAS product (``LA[blk, :i0] X[:i0]``), then
-    solves its own triangle row by row; the flops of a large ``n`` run in BLAS, not in this loop.
+    Up to ``LARGE_N`` columns ``J A J``'s lower triangle is copied to ``LA`` and factorized in place as by
+    ``_cholesky`` (no transposition after); past it by ``_cholesky_t``'s layout.
     """
-    n = L.shape[0]
-    nb = SOLVE_BLOCK
-    Xblk = np.empty((min(nb, n), n))
-    for i0 in range(0, n, nb):
-        i1 = min(i0 + nb, n)
-        for i in range(i0, i1):
-            for j in range(n):
-                X[i, j] = L[j, i]
-        if i0 > 0:
-            Lb = np.empty((i1 - i0, i0))
-            Xb = Xblk[: i1 - i0]
-            for i in range(i0, i1):
-                for k in range(i0):
-                    Lb[i - i0, k] = LA[i, k]
-            np.dot(Lb, X[:i0], Xb)  # BLAS gemm
-            for i in range(i0, i1):
-                for j in range(n):
-                    X[i, j] -= Xb[i - i0, j]
-        for i in range(i0, i1):
-            _combine(X[i], 0, n, X, LA[i], i0, i, -1.0)
-            d = LA[i, i]
-            for j in range(n):
-                X[i, j] /= d
-    _gram_lower(X, out)  # X^T X (BLAS)
-    _mirror_lower(out)
+    n = A.shape[0]
+    if n > LARGE_N:
+        return _cholesky_t(A, LA, True)
+    for i in range(n):  # (J A J)[i, j] = A[n-1-j, n-1-i] for j <= i: the lower triangle of A
+        for j in range(i + 1):
+            LA[i, j] = A[n - 1 - j, n - 1 - i]
+        for j in range(i + 1, n):
+            LA[i, j] = 0.0
+    return _potrf(LA, _UPLO_U)
 
 
 @njit(**_JIT)
-def _factor(A, LA, rev):
-    """``_cholesky(A, LA)``, or with ``rev`` the factor of ``A`` in reverse order: ``LA`` lower with
-    ``LA LA^T = J A J`` (``J`` the reversal of the indices), i.e. ``A = U U^T`` with ``U = J LA J``
-    upper triangular (``_solve``, ``_posterior_covariance_rev``). Only the lower triangle of ``A`` is read,
-    as by ``_cholesky``. False if ``A`` is not positive definite."""
-    if not rev:
-        return _cholesky(A, LA)
-    return _cholesky_t(A, LA, True)
-
-
-@njit(**_JIT)
-def _solve(LA, b, rev):
-    """``b <- A^-1 b`` from ``_factor``'s ``LA`` (with ``rev``: ``A^-1 = J (LA LA^T)^-1 J``)."""
-    if not rev:
-        _chol_solve(LA, b)
-        return
+def _solve(LA, b):
+    """``b <- A^-1 b`` from ``_factor``'s ``LA`` (``A^-1 = J (LA LA^T)^-1 J``)."""
     n = b.shape[0]
     for i in range(n // 2):
         b[i], b[n - 1 - i] = b[n - 1 - i], b[i]
@@ -600,9 +592,10 @@ def _posterior_covariance_rev(L, LA, out, W):
     """``out = L A^-1 L^T`` with ``A`` factorized in reverse order (``_factor``: ``A = U U^T``, ``U`` upper).
 
     ``L A^-1 L^T = M M^T`` with ``M = L U^-T`` lower triangular (a lower times a lower), about a
-    third of the flops of ``_posterior_covariance``'s full ``X``. With ``U = J LA J``:
+    third of the flops of a full ``X = LA^-1 L^T`` and ``X^T X``. With ``U = J LA J``:
     ``M J = Q LA^-T``, ``Q = L J``; ``W = (M J)^T`` solves ``LA W = Q^T`` (forward substitution by
-    rows, blocked as in ``_posterior_covariance``), and row ``j`` of ``W`` is zero left of column
+    rows, blocked: a block of rows first takes off the rows solved before it by one BLAS product,
+    then solves its own triangle row by row), and row ``j`` of ``W`` is zero left of column
     ``n - 1 - j`` (``W[j, i] = M[i, n - 1 - j]``), which the products skip: each BLAS ``gemm`` on a
     block of ``REV_BLOCK`` rows of ``W`` runs over the columns that block reaches. Then
     ``out = W^T W`` by strips of ``REV_BLOCK`` rows the same way, lower triangle mirrored:
@@ -858,13 +851,18 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     attitude error state's); ``control``: 0 none, 1 line search, 2 Levenberg-Marquardt (``lam``
     from 1e-3, /10 after an accepted step, x10 after a rejected one, as ``kalman.iekf_update``);
     ``stopping``: 0 mahalanobis, 1 prior, 2 scaled, 3 raw. Returns ``(x+, P+, nu, nis,
-    iterations, converged, ok)``; in the full chart the quaternion of ``x+`` is renormalized.
+    iterations, converged, ok, R+)``; in the full chart the quaternion of ``x+`` is renormalized. ``R+ (B, n, n)``:
+    a square root of ``P+ = R+^T R+``: ``R+ = J U``, the rows of ``P+``'s upper Cholesky factor ``U`` in
+    reverse order (``A`` is factorized in reverse order, so it comes with ``P+``: the ``W`` of
+    ``_posterior_covariance_rev``); NaN at ``[b, n - 1, 0]`` (``U[0, 0]``) where it is not given
+    (``ok`` False; the centered coordinates, whose factor is not triangular).
     """
     B, nx = x.shape
     n = P.shape[1]  # the filter's coordinates: the full state, or the error state
     m = y.shape[1]
     xo = np.empty((B, nx))
     Po = np.empty((B, n, n))
+    Ro = np.empty((B, n, n))  # P+ = Ro^T Ro, Ro = J U+ (Ro[b, n - 1, 0] NaN: not given)
     nu = np.empty((B, m))
     nis = np.empty(B)
     its = np.zeros(B, np.int64)
@@ -877,7 +875,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     L = Laug[:n]
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
-    rev = n > LARGE_N  # A factorized in reverse order (_factor), for P+ by _posterior_covariance_rev
+    big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n layout)
     cen = chart == 1 and n > LARGE_N  # whitened in the centered point coordinates (above)
     Np = (n - 14) // 3
     g2 = np.empty(n)  # _sqrt_mul's scratch
@@ -905,6 +903,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         xp = x[b]
         yb = y[b]
         mk = mask[b]
+        Ro[b, n - 1, 0] = np.nan  # no factor of P+ (yet): set below where the update gives it
         for r in range(m):
             rws[r] = 1.0 / math.sqrt(R[b, r])
         if cen:
@@ -914,7 +913,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 continue
             _centered_virtual_rows(Laug, Np)
         else:
-            if not (_cholesky_t(P[b], L, False) if rev else _cholesky(P[b], L)):
+            if not (_cholesky_t(P[b], L, False) if big else _cholesky(P[b], L)):
                 ok[b] = False
                 continue
             _with_virtual(chart, Laug)
@@ -931,7 +930,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
-        if not _factor(A, LA, rev):
+        if not _factor(A, LA):
             ok[b] = False
             continue
         c0 = 0.0
@@ -939,7 +938,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             c0 += rw[r] * rw[r]
         for i in range(n):
             d[i] = g[i]
-        _solve(LA, d, rev)
+        _solve(LA, d)
         nis[b] = c0 - _dot(g, d, 0, n)
         cost = c0
         for i in range(n):
@@ -966,10 +965,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                             Ad[i, j] = A[i, j]
                         Ad[i, i] += lam
                     M = Ad
-                if not _factor(M, LA, rev):
+                if not _factor(M, LA):
                     failed = True
                     break
-                _solve(LA, zn, rev)
+                _solve(LA, zn)
             fresh = True  # LA is the factor of this iterate's A
             accepted = True
             c_new = cost
@@ -1063,21 +1062,16 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
             else:
                 _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
-        if failed or not (fresh or _factor(Afin, LA, rev)):
+        if failed or not (fresh or _factor(Afin, LA)):
             ok[b] = False
             continue
         _sqrt_mul(L, z, e, cen, Np, g2)
         _reset(chart, xp, e, xo[b])
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
-        if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T
-            if rev:
-                _posterior_covariance_rev(L, LA, A, T)
-            else:
-                _posterior_covariance(L, LA, A, T)
+        if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T (its factor T^-1 M' is not triangular: none given)
+            _posterior_covariance_rev(L, LA, A, T)
             _uncenter_cov(A, Po[b], T, Np)
-        elif rev:
-            _posterior_covariance_rev(L, LA, Po[b], T)
         else:
-            _posterior_covariance(L, LA, Po[b], T)
-    return xo, Po, nu, nis, its, conv, ok
+            _posterior_covariance_rev(L, LA, Po[b], Ro[b])  # its W = (M J)^T is P+'s square root J M^T
+    return xo, Po, nu, nis, its, conv, ok, Ro
