@@ -231,17 +231,18 @@ def _error_map(xr, T):
     q = xr[9:13]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
-    Xi = np.empty((3, 4))  # 2 [L(q^*)]_vec
+    ws = np.empty(75)  # one allocation for the scratch below
+    Xi = ws[0:12].reshape((3, 4))  # 2 [L(q^*)]_vec
     Xi[0, 0], Xi[0, 1], Xi[0, 2], Xi[0, 3] = -2.0 * q1, 2.0 * q0, 2.0 * q3, -2.0 * q2
     Xi[1, 0], Xi[1, 1], Xi[1, 2], Xi[1, 3] = -2.0 * q2, -2.0 * q3, 2.0 * q0, 2.0 * q1
     Xi[2, 0], Xi[2, 1], Xi[2, 2], Xi[2, 3] = -2.0 * q3, 2.0 * q2, -2.0 * q1, 2.0 * q0
-    D = np.empty((3, 3))
-    dD = np.empty((4, 3, 3))
+    D = ws[12:21].reshape((3, 3))
+    dD = ws[21:57].reshape((4, 3, 3))
     _dcm_derivative(q, D, dD)
-    pb = np.empty(3)
+    pb = ws[57:60]
     _point_mean(xr, N, pb)
-    v = np.empty(3)
-    dv = np.empty((3, 4))
+    v = ws[60:63]
+    dv = ws[63:75].reshape((3, 4))
     for a in range(3):
         v[a] = D[a, 0] * pb[0] + D[a, 1] * pb[1] + D[a, 2] * pb[2]
         for j in range(4):
@@ -419,9 +420,10 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
     become ``e_omega``, ``delta = H_q L(q_ref) d dq/d delta``, ``e_k``.
     """
     N = _n_points(xr.shape[0])
-    Dref = np.empty((3, 3))
-    R = np.empty((3, 3))
-    v = np.empty(3)
+    ws = np.empty(70)  # one allocation for the scratch below
+    Dref = ws[0:9].reshape((3, 3))
+    R = ws[9:18].reshape((3, 3))
+    v = ws[18:21]
     _chart(xr, e, xt, Dref, R, v)
     _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
     if not compute_jac:
@@ -429,12 +431,12 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
     C = 9 if disparity else 8
     nf = vis.shape[0] * C
     w0, w1, w2 = xt[6], xt[7], xt[8]
-    WD = np.empty((3, 3))  # [omega x] D_ref / N
+    WD = ws[21:30].reshape((3, 3))  # [omega x] D_ref / N
     for j in range(3):
         WD[0, j] = (w1 * Dref[2, j] - w2 * Dref[1, j]) / N
         WD[1, j] = (w2 * Dref[0, j] - w0 * Dref[2, j]) / N
         WD[2, j] = (w0 * Dref[1, j] - w1 * Dref[0, j]) / N
-    h = np.empty(NNZ)
+    h = ws[30 : 30 + NNZ]
     for r in range(nf):
         for k in range(NNZ):
             h[k] = Hval[r, k]
@@ -447,8 +449,8 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
                                - (h[3] * WD[0, j] + h[4] * WD[1, j] + h[5] * WD[2, j]))  # fmt: skip
         Hval[r, 15] = 0.0
     if pseudo:
-        Sq = np.empty((4, 3))
-        LSq = np.empty((4, 3))
+        Sq = ws[46:58].reshape((4, 3))
+        LSq = ws[58:70].reshape((4, 3))
         _small_quaternion_jacobian(e[9:12], Sq)
         _quat_times(xr[9:13], Sq, LSq, 1.0)
         _att._pseudo_rows_rotated(Hval, nf, LSq, h)

@@ -124,8 +124,8 @@ def _dcm_derivative(q, D, dD):
     """``D`` and ``dD[j] = dD/dq_j = (dA/dq_j - 2 q_j D) / |q|^2`` (``jacobians.dcm_derivative``)."""
     n2 = _dcm(q, D)
     q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
-    dA = np.empty((4, 3, 3))
-    # dA/dq_j of the homogeneous numerator A(q) (jacobians._dA_dq_explicit)
+    dA = dD  # dA/dq_j of the homogeneous numerator A(q) (jacobians._dA_dq_explicit), in dD's memory, then
+    # dD = (2 dA - 2 q_j D) / |q|^2 in place
     dA[0, 0, 0], dA[0, 0, 1], dA[0, 0, 2] = q0, -q3, q2
     dA[0, 1, 0], dA[0, 1, 1], dA[0, 1, 2] = q3, q0, -q1
     dA[0, 2, 0], dA[0, 2, 1], dA[0, 2, 2] = -q2, q1, q0
@@ -256,11 +256,15 @@ def propagate_batch(x, rL, nd, ndd, h, mu, substeps, renormalize):
     return out
 
 
+_F_SCRATCH = 42  # _F_reduced's W, w_T, v, g, G, dg/dk, D G, dD_j^T W, dD_j^T w
+
+
 @njit(**_JIT)
-def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD):
+def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD, ws):
     """The non-zero block of ``F = df/dx`` (``jacobians.F``) on the columns ``c = [0..12, k1, k2]``.
 
-    ``Fr (13, 15)``: rows ``rho, rho_dot, omega, q``; columns 0-12 and 13-14 (``k``).
+    ``Fr (13, 15)``: rows ``rho, rho_dot, omega, q``; columns 0-12 and 13-14 (``k``); ``ws``: scratch of
+    ``_F_SCRATCH`` floats.
     """
     n = x.shape[0]
     for i in range(13):
@@ -282,18 +286,18 @@ def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD):
     Fr[4, 3] = -2.0 * nd
     _dcm_derivative(x[9:13], D, dD)
     w = x[6:9]
-    W = np.empty(3)
+    W = ws[0:3]
     W[0], W[1], W[2] = w[0], w[1], w[2] + nd
-    wT = np.empty(3)
-    v = np.empty(3)
+    wT = ws[3:6]
+    v = ws[6:9]
     for i in range(3):
         wT[i] = D[0, i] * W[0] + D[1, i] * W[1] + D[2, i] * W[2]
         v[i] = D[0, i] * w[0] + D[1, i] * w[1] + D[2, i] * w[2]
-    g = np.empty(3)
-    G = np.empty((3, 3))
-    dgdk = np.empty((3, 2))
+    g = ws[9:12]
+    G = ws[12:21].reshape((3, 3))
+    dgdk = ws[21:27].reshape((3, 2))
     _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
-    DG = np.empty((3, 3))
+    DG = ws[27:36].reshape((3, 3))
     for i in range(3):
         for j in range(3):
             DG[i, j] = D[i, 0] * G[0, j] + D[i, 1] * G[1, j] + D[i, 2] * G[2, j]
@@ -302,8 +306,8 @@ def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD):
             Fr[6 + i, 6 + j] = DG[i, 0] * D[j, 0] + DG[i, 1] * D[j, 1] + DG[i, 2] * D[j, 2]
     Fr[6, 7] += nd
     Fr[7, 6] -= nd
-    dW = np.empty(3)
-    dw = np.empty(3)
+    dW = ws[36:39]
+    dw = ws[39:42]
     for j in range(4):
         for i in range(3):  # dD_j^T W and dD_j^T w
             dW[i] = dD[j, 0, i] * W[0] + dD[j, 1, i] * W[1] + dD[j, 2, i] * W[2]
@@ -349,8 +353,9 @@ def F_reduced_batch(x, rL, nd, ndd, mu):
     out = np.empty((B, 13, 15))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
+    ws = np.empty(_F_SCRATCH)
     for b in range(B):
-        _F_reduced(x[b], rL, nd, ndd, mu, out[b], D, dD)
+        _F_reduced(x[b], rL, nd, ndd, mu, out[b], D, dD, ws)
     return out
 
 
@@ -470,15 +475,19 @@ def predict_covariance_batch(P, T, Q):
 # --- measurement model ----------------------------------------------------------
 
 
+_MEASURE_SCRATCH = 78  # _feature_rows' r, J, K0 (3 + 54 + 21); _pseudo_rows' W, a, wT, g, G, dg/dk (27)
+
+
 @njit(**_JIT)
-def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow, Hval):
+def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow, Hval, ws):
     """``h`` (``hrow (C,)``) and the 16 non-zero Jacobian columns (``Hval (C, 16)``) of feature ``i``.
 
     Columns 0-12 are ``rho, rho_dot, omega, q``, 13-15 the point ``P_i`` (``jacobians.H_features_compact``).
+    ``ws``: scratch of ``_MEASURE_SCRATCH`` floats (no allocation per feature).
     """
     p0 = 13 + 3 * i
     P = x[p0 : p0 + 3]
-    r = np.empty(3)
+    r = ws[0:3]
     for a in range(3):
         r[a] = D[a, 0] * P[0] + D[a, 1] * P[1] + D[a, 2] * P[2]
     X, Y, Z = x[0] + r[0], x[1] + r[1], x[2] + r[2]
@@ -502,7 +511,8 @@ def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow,
     if not compute_jac:
         return
     iy2 = iy * iy
-    J = np.zeros((9, 6))  # [dh/d rho_i | dh/d rho_dot_i] (jacobians._projection_gradients)
+    J = ws[3:57].reshape((9, 6))  # [dh/d rho_i | dh/d rho_dot_i] (jacobians._projection_gradients)
+    J[:, :] = 0.0
     J[0, 0] = J[2, 0] = iy
     J[0, 1] = -X * iy2
     J[2, 1] = -xl * iy2
@@ -521,7 +531,7 @@ def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow,
     if disparity:
         J[8, 1] = baseline * iy2
     # K0 = [dr/dq_j (4 cols) | D (3 cols)] (3 x 7)
-    K0 = np.empty((3, 7))
+    K0 = ws[57:78].reshape((3, 7))
     for j in range(4):
         for a in range(3):
             K0[a, j] = dD[j, a, 0] * P[0] + dD[j, a, 1] * P[1] + dD[j, a, 2] * P[2]
@@ -546,17 +556,18 @@ def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow,
 
 
 @njit(**_JIT)
-def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
-    """Euler residual ``h_pseudo`` (3,) and its 9 non-zero Jacobian columns ``[omega, q, k]`` (``Hval (3, 16)``)."""
+def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval, ws):
+    """Euler residual ``h_pseudo`` (3,) and its 9 non-zero Jacobian columns ``[omega, q, k]`` (``Hval (3, 16)``);
+    ``ws``: scratch of ``_MEASURE_SCRATCH`` floats."""
     n = x.shape[0]
     w0, w1, w2 = x[6], x[7], x[8]
-    W = np.empty(3)
+    W = ws[0:3]
     W[0], W[1], W[2] = w0, w1, w2 + nd
-    a = np.empty(3)
+    a = ws[3:6]
     a[0] = alpha[0] - nd * w1
     a[1] = alpha[1] + nd * w0
     a[2] = alpha[2] + ndd
-    wT = np.empty(3)
+    wT = ws[6:9]
     for i in range(3):
         wT[i] = D[0, i] * W[0] + D[1, i] * W[1] + D[2, i] * W[2]
     J0 = math.exp(x[n - 2])
@@ -570,9 +581,9 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval):
     hrow[2] = D[0, 2] * a[0] + D[1, 2] * a[1] + D[2, 2] * a[2] + gy2
     if not compute_jac:
         return
-    g = np.empty(3)
-    G = np.empty((3, 3))
-    dgdk = np.empty((3, 2))
+    g = ws[9:12]
+    G = ws[12:21].reshape((3, 3))
+    dgdk = ws[21:27].reshape((3, 2))
     _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
     for i in range(3):
         for c in range(16):
@@ -627,11 +638,12 @@ def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, com
     _dcm_derivative(x[9:13], D, dD)
     w = x[6:9]
     nv = vis.shape[0]
+    ws = np.empty(_MEASURE_SCRATCH)  # the rows' scratch: one allocation per call, not per feature
     for f in range(nv):
         _feature_rows(x, vis[f], baseline, disparity, focal, D, dD, w, compute_jac,
-                      hx[f * C : (f + 1) * C], Hval[f * C : (f + 1) * C])  # fmt: skip
+                      hx[f * C : (f + 1) * C], Hval[f * C : (f + 1) * C], ws)  # fmt: skip
     if pseudo:
-        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3])
+        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3], ws)
 
 
 @njit(**_JIT)
