@@ -31,11 +31,13 @@ def predict(x, P, t, fs, setup):
     return relnav.predict(x, P, t, fs, setup)
 
 
-def update(x, P, step, rows, fs, setup):
+def update(x, P, step, rows, fs, setup, model=None):
+    """The filter's update; ``model(setup, step)``: the step's measurement model (``relnav.update``; default
+    ``relnav.measurement_model``); the UKF's own update measures its sigma points with numpy's."""
     if fs.kind == "ukf":
         from . import ukf
 
         return ukf.update(x, P, step, rows, fs, setup)
     if error_state(fs):
-        return mekf.update(x, P, step, rows, fs, setup)
-    return relnav.update(x, P, step, rows, fs, setup)
+        return mekf.update(x, P, step, rows, fs, setup, model)
+    return relnav.update(x, P, step, rows, fs, setup, model)

@@ -84,11 +84,13 @@ def error_measurement(measure, x_ref: Array, rows_all: Array, chart=es):
     return measure_eps
 
 
-def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup) -> kf.Update:
-    """The error-state update and reset at one step (feature mask, gate, EKF or iterated update)."""
+def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
+           model=None) -> kf.Update:  # fmt: skip
+    """The error-state update and reset at one step (feature mask, gate, EKF or iterated update); ``model`` as in
+    ``relnav.update`` (the full state's ``measure``, seen through the chart)."""
     ch = chart_of(fs)
     e0 = np.zeros(P.shape[:-1])
-    measure = error_measurement(relnav.measurement_model(setup, step), x, rows, ch)
+    measure = error_measurement((model or relnav.measurement_model)(setup, step), x, rows, ch)
     measure, R, y, rejected, used = relnav.gated_model(e0, P, measure, step, rows, fs, setup)
     u = relnav.kalman_update(e0, P, y, measure, R, rows, fs, setup, step)
     return relnav.GatedUpdate(ch.chart(x, u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)

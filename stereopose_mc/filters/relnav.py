@@ -78,6 +78,11 @@ class GatedUpdate(kf.Update):
     # factor in reverse order (core.kernels.update.iekf_update_batch; NaN at [i, n - 1, 0] where it does not);
     # None: not given (the NEES then factorize P themselves)
     P_factor: Array | None = field(default=None)
+    # (b, 8) the posterior's NEES (core.kernels.consistency.KEYS) and (b,) whether P is positive definite (1.0/0.0),
+    # evaluated by the compiled update against the truth it was given (mc.trial); NaN rows: not evaluated there
+    # (the trials numpy updated, or no truth given); None: none evaluated
+    nees: Array | None = field(default=None)
+    nees_pd: Array | None = field(default=None)
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):
@@ -123,9 +128,14 @@ def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
     return y
 
 
-def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup) -> kf.Update:
-    """The filter's measurement update (EKF or IEKF) at one step."""
-    measure, R, y, rejected, used = gated_model(x, P, measurement_model(setup, step), step, rows, fs, setup)
+def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
+           model=None) -> kf.Update:  # fmt: skip
+    """The filter's measurement update (EKF or IEKF) at one step.
+
+    ``model(setup, step)``: the step's ``measure`` (default ``measurement_model``; ``filters.compiled`` passes its
+    compiled twin when it leaves a trial to this update)."""
+    measure = (model or measurement_model)(setup, step)
+    measure, R, y, rejected, used = gated_model(x, P, measure, step, rows, fs, setup)
     u = kalman_update(x, P, y, measure, R, rows, fs, setup, step)
     return GatedUpdate(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)
 

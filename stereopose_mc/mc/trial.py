@@ -18,6 +18,7 @@ given at every one of those steps (a filter locked out by its own gate).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -207,7 +208,8 @@ def run_filter(
     w_last, v_last = x[:, st.OMEGA].copy(), _omega_var(P)  # every trial's latest posterior omega, its variance
     w_hist[:, -1], v_hist[:, -1] = w_last, v_last
     td_state = None
-    active = np.arange(B)
+    all_trials = np.arange(B)
+    active = all_trials
     # The active trials' posteriors, in the order of ``active``: the update's own arrays, kept from step
     # to step (no gather into and scatter from ``x, P`` at each step); ``x, P`` receive a trial's
     # posterior when it is lost (frozen there) and the others' at the end.
@@ -233,11 +235,14 @@ def run_filter(
             feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
-            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, stepper.update)
+            update = stepper.update
+            if kernels == "compiled":  # the update evaluates the posteriors' NEES against the truth, in cache
+                update = functools.partial(update, x_true=true_state(truth.x, k, all_trials))
+            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, update)
             x_true_k = true_state(truth.x, k, active)
             e = errors_of(u.x, x_true_k, kernels)
             try:
-                v, pd = nees_and_pd(u.x, u.P, x_true_k, fs.error_state, kernels, getattr(u, "P_factor", None))
+                v, pd = _posterior_nees(u, x_true_k, fs.error_state, kernels)
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)
@@ -368,37 +373,42 @@ def _left_to_numpy(xa, Pa, step, rows, fs, setup, exc):
     to numpy's update (``filters.compiled.PartialUpdateError``: it failed on them as one batch, or, for 2 to
     ``compiled.ONE_BY_ONE`` of them, was not tried): those trials alone, one by one (2 to ``ALONE``, or not tried:
     ``k`` calls of numpy's update, where a bisection makes ~``2k - 2``) or bisected without a second try, patched
-    into the others' results ``exc.update``."""
-    from ..filters.compiled import patch
+    into the others' results ``exc.update``. Numpy's update here is ``filters.compiled.numpy_update``: its algebra and
+    solvers on the compiled measurement model, as the compiled update's own fallback."""
+    from ..filters.compiled import numpy_update, patch
 
     bad = exc.bad
     idx = np.flatnonzero(bad)
     if 1 < idx.size <= ALONE or not exc.tried:
         # copies ([i], not views): nothing that numpy's failure leaves behind holds the caller's arrays
-        parts = [_robust_update(xa[[i]], Pa[[i]], step, rows[[i]], fs, setup, estimators.update)
+        parts = [_robust_update(xa[[i]], Pa[[i]], step, rows[[i]], fs, setup, numpy_update)
                  for i in idx.tolist()]  # fmt: skip
         sub, why = _concatenate([p[0] for p in parts]), [r for p in parts for r in p[1]]
     else:
-        sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, estimators.update, str(exc))
+        sub, why = _robust_update(xa[bad], Pa[bad], step, rows[bad], fs, setup, numpy_update, str(exc))
     reasons = [""] * rows.size
     for i, r in zip(idx.tolist(), why):
         reasons[i] = r
     return patch(exc.update, bad, sub), reasons
 
 
+# the compiled update's optional fields (relnav.GatedUpdate) and their shape in an update u that lacks them
+_OPTIONAL = {"P_factor": lambda u: u.P.shape, "nees": lambda u: (u.P.shape[0], 8), "nees_pd": lambda u: u.P.shape[:1]}
+
+
 def _concatenate(updates: list):
     """The updates of consecutive parts of a batch as one (MEKF/UKF updates carry no gate counts: the fields all
-    parts have). ``P_factor`` (given by the compiled update only) is NaN for the parts without one, None if no part
-    has one."""
+    parts have). ``P_factor``, ``nees`` and ``nees_pd`` (given by the compiled update only) are NaN for the parts
+    without them, None if no part has them."""
     cls = relnav.GatedUpdate if all(isinstance(u, relnav.GatedUpdate) for u in updates) else kf.Update
     out = {}
     for f in dataclasses.fields(cls):
         parts = [getattr(u, f.name) for u in updates]
-        if f.name == "P_factor":
+        if f.name in _OPTIONAL:
             if all(p is None for p in parts):
                 out[f.name] = None
                 continue
-            parts = [np.full(u.P.shape, np.nan) if p is None else p for u, p in zip(updates, parts)]
+            parts = [np.full(_OPTIONAL[f.name](u), np.nan) if p is None else p for u, p in zip(updates, parts)]
         out[f.name] = np.concatenate(parts)
     return cls(**out)
 
@@ -451,6 +461,32 @@ def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude"
         return consistency.nees_and_pd(x, P, x_true, attitude, P_factor)
     with np.errstate(all="ignore"):
         return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true), None
+
+
+def _posterior_nees(u, x_true: Array, error_state: str, kernels: str) -> tuple[dict[str, Array], Array | None]:
+    """``nees_and_pd`` of the update ``u``'s posteriors: those the compiled update evaluated (``u.nees``), the
+    others (the trials numpy updated, or every trial when none was evaluated) computed here."""
+    ev, epd = getattr(u, "nees", None), getattr(u, "nees_pd", None)
+    if ev is None:
+        return nees_and_pd(u.x, u.P, x_true, error_state, kernels, getattr(u, "P_factor", None))
+    todo = np.isnan(epd)
+    pd = epd == 1.0
+    if todo.any():
+        ev = ev.copy()
+        rest = np.flatnonzero(todo)
+        xt = x_true if x_true.ndim == 1 else x_true[rest]
+        v, p = nees_and_pd(u.x[rest], u.P[rest], xt, error_state, kernels,
+                           None if u.P_factor is None else u.P_factor[rest])  # fmt: skip
+        ev[rest] = np.stack([v[k] for k in _nees_keys()], axis=-1)
+        pd[rest] = p
+    return {k: ev[:, j] for j, k in enumerate(_nees_keys())}, pd
+
+
+def _nees_keys() -> tuple[str, ...]:
+    """The NEES of ``GatedUpdate.nees``, in its column order (``core.kernels.consistency.KEYS``)."""
+    from ..core.kernels.consistency import KEYS
+
+    return KEYS
 
 
 def _store_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, v: dict[str, Array]) -> None:

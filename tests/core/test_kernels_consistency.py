@@ -291,7 +291,7 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
     """The 2 x 2 and 3 x 3 blocks' NEES in scalars (``_mahalanobis_small``) against ``_cholesky_small`` and
     ``_forward`` on the same block: the same bits, NaN where the block is not positive definite (and other sizes
     on the general path)."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import cholesky as kcho
 
     rng = np.random.default_rng(11)
     for m in (1, 2, 3, 4):  # 1 and 4: the general path on both sides, the boundaries of the scalar one
@@ -301,8 +301,8 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
             e = rng.standard_normal(m) * 10.0 ** rng.uniform(-4, 4)
             L, w = np.zeros((m, m)), np.empty(m)
             want = np.nan
-            if ku._cholesky_small(C, L):
-                ku._forward(L, e, w)
+            if kcho._cholesky_small(C, L):
+                kcho._forward(L, e, w)
                 want = 0.0
                 for i in range(m):  # the general path's order: a running sum of squares
                     want += w[i] * w[i]

@@ -308,6 +308,66 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_array_equal(got, hx)
 
 
+def test_the_compiled_measurement_model_equals_numpys():
+    """``compiled.measurement_model`` (numpy's update on the trials the kernels leave to it): the same ``measure(x,
+    rows, jac)`` as ``relnav.measurement_model``, ``h`` and the dense ``H`` equal to round-off, the pseudo rows with
+    each row's trial's acceleration; without ``jac``, no ``H`` and the same ``h``."""
+    from stereopose_mc.filters import compiled, relnav
+
+    scn, setup, truth, exact, _ = _prepared(error_state="aligned", **SHORT)
+    assert setup.pseudo
+    k = 7
+    rng = np.random.default_rng(5)
+    x = truth.x[k] + 1e-3 * rng.standard_normal((6, truth.x.shape[-1]))
+    alpha = truth.alpha[k] + 1e-4 * rng.standard_normal((8, 3))
+    step = relnav.StepMeasurement(np.zeros((8, 1)), alpha, exact.visible[k], truth.t[k])
+    rows = np.array([0, 2, 3, 5, 6, 7])
+    hx, H = compiled.measurement_model(setup, step)(x, rows)
+    ref_h, ref_H = relnav.measurement_model(setup, step)(x, rows)
+    assert H.shape == ref_H.shape == (6, hx.shape[1], x.shape[1])
+    np.testing.assert_allclose(hx, ref_h, rtol=1e-13, atol=1e-13 * np.abs(ref_h).max())
+    np.testing.assert_allclose(H, ref_H, rtol=1e-12, atol=1e-13 * np.abs(ref_H).max())
+    assert not np.array_equal(hx[:, -3:], compiled.measurement_model(setup, step)(x, rows[::-1])[0][:, -3:])
+    h_only, none = compiled.measurement_model(setup, step)(x, rows, jac=False)
+    assert none is None
+    np.testing.assert_array_equal(h_only, hx)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "iekf"])
+@pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
+def test_the_update_evaluates_its_posteriors_nees_as_the_nees_kernel(kind, error_state):
+    """Given the truth, the compiled update evaluates each posterior's NEES in the kernel, right after ``P+`` and its
+    square root (``consistency._nees_one``): bit for bit ``nees_and_pd`` of its own posteriors. A trial left to
+    numpy's update is not evaluated there (NaN); ``mc.trial._posterior_nees`` computes those: its NEES and ``pd``
+    are ``nees_and_pd``'s on every trial. Without the truth nothing is evaluated (None)."""
+    from stereopose_mc.core.kernels import consistency as kc
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc import trial
+
+    x, P, step, fs, setup = _aligned_step(kind, B=6, full=error_state == "full")
+    fs = dataclasses.replace(fs, error_state=error_state)
+    rows = np.arange(len(x))
+    failing = [2] if kind == "ekf" else []  # the EKF kernel's Cholesky fails there: numpy's update (the IEKF raises)
+    P[failing] = -P[failing]
+    rng = np.random.default_rng(8)
+    xt = x + 1e-3 * rng.standard_normal(x.shape)
+    xt[:, 9:13] /= np.linalg.norm(xt[:, 9:13], axis=-1, keepdims=True)
+    u = compiled.update(x, P, step, rows, fs, setup, x_true=xt)
+    assert compiled.update(x, P, step, rows, fs, setup).nees is None
+    ref, pd = kc.nees_and_pd(u.x, u.P, xt, error_state == "attitude", u.P_factor)
+    done = ~np.isnan(u.nees_pd)
+    assert done.tolist() == [i not in failing for i in rows]
+    assert np.isnan(u.nees[~done]).all()
+    for j, key in enumerate(kc.KEYS):
+        np.testing.assert_array_equal(u.nees[done, j], ref[key][done], key)
+    np.testing.assert_array_equal(u.nees_pd[done] == 1.0, pd[done])
+    assert pd[done].all() and np.isfinite(u.nees[done]).all()
+    v, p = trial._posterior_nees(u, xt, error_state, "compiled")
+    for key in kc.KEYS:
+        np.testing.assert_array_equal(v[key], ref[key], key)
+    np.testing.assert_array_equal(p, pd)
+
+
 def _check_square_root(u, given):
     """The compiled update's ``P_factor``: for the trials ``given`` a square root ``R = J U`` of ``P+`` (``U`` upper
     triangular with a positive diagonal, ``R^T R = P+`` to round-off: P's own Cholesky factor, reversed), the others
@@ -444,7 +504,9 @@ def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error
 
 def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
     """A trial with an indefinite covariance: the EKF kernel's Cholesky of ``S`` fails, that trial is updated by
-    ``mekf.update`` (numpy's solver, which does not factorize), the others by the kernel; the IEKF raises as numpy."""
+    ``mekf.update`` (numpy's solver, which does not factorize) on the compiled measurement model
+    (``compiled.numpy_update``: the same bits), which equals numpy's own to round-off; the others by the kernel; the
+    IEKF raises as numpy."""
     from stereopose_mc.filters import compiled, mekf
 
     x, P, step, fs, setup = _aligned_step("ekf")
@@ -452,9 +514,12 @@ def test_a_trial_whose_kernel_cholesky_fails_takes_the_numpy_path():
     rows = np.arange(len(x))
     a = mekf.update(x, P, step, rows, fs, setup)
     b = compiled.update(x, P, step, rows, fs, setup)
-    one = mekf.update(x[2:3], P[2:3], step, rows[2:3], fs, setup)
+    one = mekf.update(x[2:3], P[2:3], step, rows[2:3], fs, setup, compiled.measurement_model)
     np.testing.assert_array_equal(b.x[2], one.x[0])
     np.testing.assert_array_equal(b.P[2], one.P[0])
+    ref = mekf.update(x[2:3], P[2:3], step, rows[2:3], fs, setup)  # numpy's model
+    assert np.max(np.abs(b.x[2] - ref.x[0])) <= 1e-12 * np.max(np.abs(ref.x[0]))
+    np.testing.assert_allclose(b.P[2], ref.P[0], rtol=1e-9, atol=1e-12 * np.max(np.abs(ref.P[0])))
     ok = rows != 2
     _check_square_root(b, ok)  # numpy's update gives no factor
     s = np.sqrt(np.diagonal(a.P[ok], axis1=-2, axis2=-1))
@@ -519,9 +584,9 @@ def test_a_partial_failure_is_bisected_alone_with_the_same_results():
     sizes = []
     numpy_update = compiled.estimators.update
 
-    def counted(x, *args):
+    def counted(x, *args, **kw):
         sizes.append(len(x))
-        return numpy_update(x, *args)
+        return numpy_update(x, *args, **kw)
 
     compiled.estimators.update = counted
     try:
@@ -551,9 +616,9 @@ def test_the_trials_left_to_numpy_are_updated_one_by_one_with_the_bisections_res
     sizes = []
     numpy_update = compiled.estimators.update
 
-    def counted(x, *args):
+    def counted(x, *args, **kw):
         sizes.append(len(x))
-        return numpy_update(x, *args)
+        return numpy_update(x, *args, **kw)
 
     def whole_batch_bisection(*args):
         try:
@@ -597,7 +662,7 @@ def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
     assert w.rejected is not const and (const == 0).all()
     for f in dataclasses.fields(w):
         got, want = getattr(w, f.name), getattr(v, f.name)
-        if f.name == "P_factor":  # given by neither
+        if f.name in ("P_factor", "nees", "nees_pd"):  # given by neither
             assert got is None and want is None
             continue
         np.testing.assert_array_equal(got[bad], want, f.name)
@@ -613,3 +678,11 @@ def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
     assert w.P_factor is R
     assert np.isnan(w.P_factor[bad]).all()
     np.testing.assert_array_equal(w.P_factor[~bad], kept[~bad])
+    # the NEES the compiled update evaluated: the patched trials' are marked not evaluated (NaN), the others kept
+    ev, epd = rng.random((B, 8)), np.ones(B)
+    kept = ev.copy()
+    w = compiled.patch(dataclasses.replace(u, nees=ev, nees_pd=epd), bad, v)
+    assert w.nees is ev and w.nees_pd is epd
+    assert np.isnan(ev[bad]).all() and np.isnan(epd[bad]).all()
+    np.testing.assert_array_equal(ev[~bad], kept[~bad])
+    assert (epd[~bad] == 1.0).all()

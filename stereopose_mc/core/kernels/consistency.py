@@ -45,8 +45,8 @@ from numba import njit
 from . import attitude as _att
 from . import writable as _writable
 from .aligned import _apply_error_map, _error_map, _local, _qmul
+from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward
 from .model import _dot, _dot_row, _mirror_lower
-from .update import _cholesky, _cholesky_small, _cholesky_upper, _forward
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -626,6 +626,59 @@ def _factor_given(R):
 
 
 @njit(**_JIT)
+def _nees_scratch(n, m):
+    """The scratch arrays of ``_nees_one`` for a state of ``n`` and a covariance of ``m`` columns."""
+    ne = n - 1
+    N = (n - 15) // 3
+    return (np.empty((ne, n)), np.empty((n, ne)), np.empty((ne, ne)), np.zeros(ne), np.empty((ne, n)), np.empty((n, ne)),
+            np.empty((3, n)), np.empty((ne, ne)), np.empty((m, m)), np.empty((m, m)), np.empty((ne, ne)), np.empty(ne),
+            np.empty(ne), np.zeros(ne, np.int64), np.zeros((ne, 3 + 3 * N), np.int64), np.zeros((ne, 3 + 3 * N)),
+            np.empty((ne, ne)), np.empty((ne, ne)), np.empty((ne, ne)), np.empty(ne), np.empty((3, ne)), np.empty(ne),
+            np.empty((ne, ne)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(4), np.empty(4),
+            np.empty((6, 3)), np.empty((3, ne)), np.empty((6, 3)), np.empty((5, n)))  # fmt: skip
+
+
+@njit(**_JIT)
+def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
+    """One trial of ``nees_batch``: its 8 NEES into ``out`` (left as they are, NaN, where the state or ``P`` is not
+    finite or ``P`` is not positive definite) and ``pd``, returned. ``Rg``: ``P``'s square root ``J U`` where the
+    caller has one (``have``; used where ``_factor_given``); ``ws``: ``_nees_scratch``. The compiled update calls
+    it on each posterior as soon as it is formed (``core.kernels.update``: ``P+`` and its square root still in cache).
+    """
+    Tm, Sa, Mi, e0, TP, Pt, Sm, Pa, Uf, Rf, Lr, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, \
+        Sp, Wp, W5 = ws  # fmt: skip
+    n = xh.shape[0]
+    ne = n - 1
+    N = (n - 15) // 3
+    full = P.shape[0] == n
+    mapped = full or attitude
+    if not (_finite(xh) and _finite(xt) and _finite(P.ravel())):
+        return False
+    given = have and _factor_given(Rg)
+    Rt = Rg if given else Rf  # P's square root J U (P = U^T U): given, or factorized here (_own_root)
+    if full and (given or _own_root(P, Uf, Rf)):  # positive definite: the NEES from P's own factor
+        _one_full(xh, P, Rt, xt, N, out, Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
+        return True
+    if attitude and (given or _own_root(P, Uf, Rf)):  # the same for an attitude error state's P
+        _one_att(xh, P, Rt, xt, N, out, e, eps, cnt, cols, vals, W5[:, :ne], Lb, w, D, Dt, R, dq, tmp, v3, Wp)
+        return True
+    if mapped:  # P does not factorize: the NEES of the mapped covariance, as the numpy path (pd stays False)
+        if full:
+            _map_full(xh, P, Tm, TP, Pt, Pa, Sm)
+        else:  # M^-1 = T_aligned S_attitude
+            _error_map(xh, Tm)
+            _att._chart_jacobian(xh, e0, Sa)
+            np.dot(Tm, Sa, Mi)
+            np.dot(Mi, P, C)
+            np.dot(C, Mi.T, Pa)
+            _mirror_lower(Pa)
+        _one(xh, Pa, xt, N, out, e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, L, False)
+        return False
+    return _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rt, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf,
+                given)  # fmt: skip
+
+
+@njit(**_JIT)
 def nees_batch(x_hat, P, x_true, attitude, Rg):
     """NEES ``(B, 8)`` in the order of ``KEYS`` (module docstring) and ``pd (B,)``; ``x_true`` per trial ``(B, n)``.
 
@@ -647,72 +700,13 @@ def nees_batch(x_hat, P, x_true, attitude, Rg):
     (``_factor_given``; the update marks a missing one with NaN): ``P`` is then positive definite
     (``pd``) and is not factorized again.
     """
-    B, n = x_hat.shape
-    ne = n - 1
-    N = (n - 15) // 3
-    full = P.shape[1] == n
-    mapped = full or attitude
+    B = x_hat.shape[0]
     out = np.full((B, 8), np.nan)
     pd = np.zeros(B, np.bool_)
-    Tm = np.empty((ne, n))
-    Sa = np.empty((n, ne))
-    Mi = np.empty((ne, ne))
-    e0 = np.zeros(ne)
-    TP = np.empty((ne, n))
-    Pt = np.empty((n, ne))
-    Sm = np.empty((3, n))  # the map's point sums (rows of P: n wide)
-    Pa = np.empty((ne, ne))
-    Uf = np.empty((P.shape[1], P.shape[1]))  # P's upper Cholesky factor where it is not given
-    Rf = np.empty((P.shape[1], P.shape[1]))  # its rows in reverse order
-    Lr = np.empty((ne, ne))  # the same for a mapped covariance (L: its factor)
-    e = np.empty(ne)
-    eps = np.empty(ne)
-    cnt = np.zeros(ne, np.int64)
-    cols = np.zeros((ne, 3 + 3 * N), np.int64)
-    vals = np.zeros((ne, 3 + 3 * N))
-    C = np.empty((ne, ne))
-    L = np.empty((ne, ne))
-    Lb = np.empty((ne, ne))
-    w = np.empty(ne)
-    U = np.empty((3, ne))
-    u = np.empty(ne)
-    Y = np.empty((ne, ne))
-    D = np.empty((3, 3))
-    Dt = np.empty((3, 3))
-    R = np.empty((3, 3))
-    dq = np.empty(4)
-    tmp = np.empty(4)
-    v3 = np.empty((6, 3))
-    Sp = np.empty((3, ne))
-    Wp = np.empty((6, 3))
-    W5 = np.empty((5, n))
+    ws = _nees_scratch(x_hat.shape[1], P.shape[1])
+    have = Rg.shape[0] == B
     for t in range(B):
-        if not (_finite(x_hat[t]) and _finite(x_true[t]) and _finite(P[t].ravel())):
-            continue
-        given = Rg.shape[0] == B and _factor_given(Rg[t])
-        Rt = Rg[t] if given else Rf  # P's square root J U (P = U^T U): given, or factorized here (_own_root)
-        if full and (given or _own_root(P[t], Uf, Rf)):  # positive definite: the NEES from P's own factor
-            pd[t] = True
-            _one_full(x_hat[t], P[t], Rt, x_true[t], N, out[t], Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
-        elif attitude and (given or _own_root(P[t], Uf, Rf)):  # the same for an attitude error state's P
-            pd[t] = True
-            _one_att(x_hat[t], P[t], Rt, x_true[t], N, out[t], e, eps, cnt, cols, vals, W5[:, :ne], Lb, w, D, Dt, R,
-                     dq, tmp, v3, Wp)  # fmt: skip
-        elif mapped:  # P does not factorize: the NEES of the mapped covariance, as the numpy path (pd stays False)
-            if full:
-                _map_full(x_hat[t], P[t], Tm, TP, Pt, Pa, Sm)
-            else:  # M^-1 = T_aligned S_attitude
-                _error_map(x_hat[t], Tm)
-                _att._chart_jacobian(x_hat[t], e0, Sa)
-                np.dot(Tm, Sa, Mi)
-                np.dot(Mi, P[t], C)
-                np.dot(C, Mi.T, Pa)
-                _mirror_lower(Pa)
-            _one(x_hat[t], Pa, x_true[t], N, out[t], e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp,
-                 v3, Sp, Wp, L, False)  # fmt: skip
-        else:
-            pd[t] = _one(x_hat[t], P[t], x_true[t], N, out[t], e, eps, cnt, cols, vals, C, Rt, Lb, w, U, u, Y, D, Dt,
-                         R, dq, tmp, v3, Sp, Wp, Uf, given)  # fmt: skip
+        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws[9], have, out[t], ws)
     return out, pd
 
 

@@ -35,7 +35,11 @@ points even, 10 points 8 % slower, 20 points 5-10 % faster, 40 points 15-25 %).
 At every size ``A`` is factorized in reverse order (``_factor``), so that ``P+ = L A^-1 L^T =
 M M^T`` with ``M`` lower triangular (``_posterior_covariance_rev``): ``P+``'s own Cholesky
 factor comes with it, which the kernels return (as ``J M^T``) for the NEES to use instead of
-factorizing ``P+`` again (``core.kernels.consistency.nees_batch``).
+factorizing ``P+`` again (``core.kernels.consistency.nees_batch``). Given the true states (``x_true``, the
+engine's runs: ``mc.trial``), the kernels evaluate each posterior's NEES themselves as soon as ``P+`` and its
+square root are formed (``consistency._nees_one``, the per-trial body of ``nees_batch``: the same numbers), while
+they are still in cache: read again by a separate pass over the batch they come from memory (~2 us of the NEES's
+~5.5 us per trial in case B's full state).
 
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
@@ -50,6 +54,8 @@ from numba import njit, types
 
 from . import attitude as _att
 from .aligned import _chart, _measure_aligned, virtual_rows
+from .cholesky import _KIND_D, _UPLO_U, _cholesky, _cholesky_t, _forward, _potrf
+from .consistency import _nees_one, _nees_scratch
 from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -62,13 +68,7 @@ STAIR_BLOCK = 8  # the strips of rows of A in _whiten_staircase
 REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 
 
-# LAPACK's dpotrf as Numba's own ``np.linalg.cholesky`` calls it (its C helper resolves scipy's
-# ``cython_lapack`` at run time, so a cached kernel stays valid in a new process); called directly
-# it factorizes in place: no copy of the input, no allocated output, no exception to catch.
-_xxpotrf = types.ExternalFunction("numba_xxpotrf", types.intc(types.char, types.char, types.intp,
-                                                               types.CPointer(types.float64), types.intp))  # fmt: skip
-_KIND_D, _UPLO_U, _UPLO_L = 100, 85, 76  # ord("d") (float64), ord("U"), ord("L")
-# BLAS's dgemm as Numba's own ``np.dot`` calls it (resolved at run time like ``_xxpotrf``), called directly for
+# BLAS's dgemm as Numba's own ``np.dot`` calls it (resolved at run time like ``cholesky._xxpotrf``), called directly for
 # products of sub-matrices given by a first element and a leading dimension (column-major, as BLAS sees a C-order
 # matrix: transposed), with ``beta``
 _xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
@@ -76,137 +76,6 @@ _xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
     types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.intp,
     types.CPointer(types.float64), types.CPointer(types.float64), types.intp))  # fmt: skip
 _NOTRANS, _TRANS = 110, 116  # ord("n"), ord("t")
-
-
-@njit(**_JIT)
-def _cholesky(A, L):
-    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
-
-    LAPACK's ``potrf`` on ``L`` in place (``L`` may be a block ``M[:m, :m]`` of a larger C-order
-    array): a C-order lower triangle is the upper triangle of the same memory read in Fortran
-    order, hence ``uplo = "U"``. ``potrf`` fails (``info > 0``) on a matrix that is not positive
-    definite or meets a NaN pivot; an infinite pivot is caught by the check of the diagonal.
-    """
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i + 1):
-            L[i, j] = A[i, j]
-        for j in range(i + 1, n):
-            L[i, j] = 0.0
-    return _potrf(L, _UPLO_U)
-
-
-@njit(**_JIT)
-def _potrf(L, uplo):
-    """LAPACK's ``potrf`` on ``L`` in place, as column-major memory (``uplo``: which triangle of it holds the
-    matrix, the other being zeros); False if it fails or a pivot is not finite."""
-    n = L.shape[0]
-    if n == 0:
-        return True
-    if L.strides[1] == 8:  # unit-stride rows: in place; a block ``L[:m, :m]``'s row stride is the leading dimension
-        info = _xxpotrf(_KIND_D, uplo, n, L.ctypes, L.strides[0] // 8)
-    else:  # (never in these kernels) a contiguous copy; no recursive call: a cached recursion does not link
-        Lc = np.ascontiguousarray(L)
-        info = _xxpotrf(_KIND_D, uplo, n, Lc.ctypes, n)
-        L[:, :] = Lc
-    if info != 0:
-        return False
-    for i in range(n):
-        if not math.isfinite(L[i, i]):
-            return False
-    return True
-
-
-@njit(**_JIT)
-def _cholesky_t(A, L, rev):
-    """``_cholesky`` for the large-``n`` path (``_factor``): ``potrf`` on the transposed layout.
-
-    OpenBLAS's ``potrf`` is ~10 % faster for a column-major lower factor (``uplo = "L"``) than
-    for an upper one at n = 74-134, so the lower triangle of ``A`` (with ``rev``: of ``J A J``)
-    goes to the upper triangle of ``L`` (the same memory read column-major), and the factor
-    comes back to the lower triangle after. False if ``A`` is not positive definite."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            L[i, j] = 0.0
-        if rev:  # (J A J)[j, i] = A[n-1-j, n-1-i] = A[n-1-i, n-1-j] (j >= i): from the lower triangle
-            for j in range(i, n):
-                L[i, j] = A[n - 1 - i, n - 1 - j]
-        else:
-            for j in range(i, n):
-                L[i, j] = A[j, i]
-    if not _potrf(L, _UPLO_L):
-        return False
-    for i in range(n):
-        for j in range(i + 1, n):
-            L[j, i] = L[i, j]
-            L[i, j] = 0.0
-    return True
-
-
-@njit(**_JIT)
-def _cholesky_upper(A, U):
-    """Upper ``U`` with ``U^T U = A`` (only the lower triangle of ``A`` is read); False if not PD.
-
-    ``potrf`` with ``uplo = "L"`` on ``U`` as column-major memory, where the C-order upper triangle
-    is the lower one: the factor ``U = L^T`` of ``_cholesky``, whose rows in reverse order the NEES read
-    (``core.kernels.consistency``), as they read the compiled update's ``R+``.
-    """
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            U[i, j] = 0.0
-        for j in range(i, n):
-            U[i, j] = A[j, i]
-    return _potrf(U, _UPLO_L)
-
-
-@njit(**_JIT)
-def _cholesky_small(A, L):
-    """``_cholesky`` written out (left-looking), for the small blocks where LAPACK's call costs more than the work.
-
-    Row ``j`` of ``U = L^T`` (held in the upper triangle of ``L``, transposed at the end) is row
-    ``j`` of ``A``'s upper triangle minus a combination of the rows above it, divided by the
-    square root of its pivot.
-    """
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i, n):
-            L[i, j] = A[j, i]
-    for j in range(n):
-        _combine(L[j], j, n, L, L[:, j], 0, j, -1.0)
-        d = L[j, j]
-        if not d > 0.0:
-            return False
-        d = math.sqrt(d)
-        for c in range(j, n):
-            L[j, c] /= d
-    for i in range(n):
-        for j in range(i):
-            L[i, j] = L[j, i]
-            L[j, i] = 0.0
-    return True
-
-
-@njit(**_JIT)
-def _forward(L, b, out, lo=0):
-    """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``).
-
-    ``lo``: ``b[:lo]`` is zero, so ``out[:lo]`` is too and the sums start at ``lo`` (the same
-    numbers as from 0 when ``lo`` is a multiple of 4: the terms skipped are exact zeros, and
-    ``_dot_row``'s four partial sums keep their terms).
-    """
-    n = L.shape[0]
-    for i in range(lo):
-        out[i] = 0.0
-    for i in range(lo, n):
-        if i < 16:  # short rows (the NEES's small blocks): one running sum costs less than four
-            t = b[i]
-            for k in range(lo, i):
-                t -= L[i, k] * out[k]
-        else:
-            t = b[i] - _dot_row(L, i, out, lo, i)
-        out[i] = t / L[i, i]
 
 
 @njit(**_JIT)
@@ -277,7 +146,8 @@ def _with_virtual(chart, Maug):
         virtual_rows(Maug[:n], Maug)
 
 
-def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart):
+def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
+                     x_true=None, attitude=False):  # fmt: skip
     """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
 
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
@@ -292,12 +162,14 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     A Python call of the compiled ``iekf_update_batch`` with one plain Gauss-Newton step (not a
     kernel of its own: that was a second copy of the same machine code to load at start-up).
 
-    Returns ``(x+, P+, nu, nis, ok, R+)`` (``R+`` as ``iekf_update_batch``'s); in the full chart the quaternion
-    of ``x+`` is renormalized.
+    Returns ``(x+, P+, nu, nis, ok, R+, nees, pd)`` (``R+``, ``x_true``, ``attitude``, ``nees`` and ``pd`` as
+    ``iekf_update_batch``'s); in the full chart the quaternion of ``x+`` is renormalized.
     """
-    xo, Po, nu, nis, _, _, ok, Ro = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
-                                                      alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0)  # fmt: skip
-    return xo, Po, nu, nis, ok, Ro
+    xt = np.empty((0, x.shape[1])) if x_true is None else x_true
+    xo, Po, nu, nis, _, _, ok, Ro, ev, epd = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal,
+                                                               pseudo, alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0,
+                                                               xt, attitude)  # fmt: skip
+    return xo, Po, nu, nis, ok, Ro, ev, epd
 
 
 @njit(**_JIT)
@@ -843,7 +715,7 @@ def _lower_mul(L, z, out):
 
 @njit(**_JIT)
 def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
-                      tol, max_iter, control, stopping, max_halvings):  # fmt: skip
+                      tol, max_iter, control, stopping, max_halvings, x_true, attitude):  # fmt: skip
     """Gauss-Newton IEKF in whitened coordinates ``x = x- [+] L z`` (``kalman.iekf_update``), per trial.
 
     ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
@@ -856,6 +728,11 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     reverse order (``A`` is factorized in reverse order, so it comes with ``P+``: the ``W`` of
     ``_posterior_covariance_rev``); NaN at ``[b, n - 1, 0]`` (``U[0, 0]``) where it is not given
     (``ok`` False; the centered coordinates, whose factor is not triangular).
+
+    ``x_true``: the true states ``(B, nx)``, or ``(0, nx)``. Given, each posterior's NEES are evaluated as soon as it is
+    formed, with ``P+`` and ``R+`` still in cache (``consistency._nees_one``, the per-trial body of
+    ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 8)`` and ``pd (B,)``,
+    1.0 or 0.0, both NaN where not evaluated (no truth given, or ``ok`` False).
     """
     B, nx = x.shape
     n = P.shape[1]  # the filter's coordinates: the full state, or the error state
@@ -899,6 +776,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
+    ev = np.full((B, 8), np.nan)  # the posteriors' NEES (x_true given)
+    epd = np.full(B, np.nan)
+    judged = x_true.shape[0] == B
+    nws = _nees_scratch(nx, n)
     for b in range(B):
         xp = x[b]
         yb = y[b]
@@ -1074,4 +955,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _uncenter_cov(A, Po[b], T, Np)
         else:
             _posterior_covariance_rev(L, LA, Po[b], Ro[b])  # its W = (M J)^T is P+'s square root J M^T
-    return xo, Po, nu, nis, its, conv, ok, Ro
+        if judged:
+            epd[b] = 1.0 if _nees_one(xo[b], Po[b], x_true[b], attitude, Ro[b], True, ev[b], nws) else 0.0
+    return xo, Po, nu, nis, its, conv, ok, Ro, ev, epd

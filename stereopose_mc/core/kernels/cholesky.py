@@ -1,0 +1,157 @@
+"""Cholesky factorizations and triangular solves of the compiled kernels (Numba), one small matrix at a time.
+
+``_cholesky`` (LAPACK's ``potrf`` in place), its transposed layout ``_cholesky_t`` (the update's large ``n``),
+``_cholesky_upper`` (the NEES's own factor of ``P``), ``_cholesky_small`` (written out, for the NEES's small
+blocks) and ``_forward`` (forward substitution). Shared by ``core.kernels.update`` and
+``core.kernels.consistency``, which the update calls in turn for the NEES of its posteriors (this module
+imports neither of them).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, types
+
+from .model import _combine, _dot_row
+
+_JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
+
+# LAPACK's dpotrf as Numba's own ``np.linalg.cholesky`` calls it (its C helper resolves scipy's
+# ``cython_lapack`` at run time, so a cached kernel stays valid in a new process); called directly
+# it factorizes in place: no copy of the input, no allocated output, no exception to catch.
+_xxpotrf = types.ExternalFunction("numba_xxpotrf", types.intc(types.char, types.char, types.intp,
+                                                               types.CPointer(types.float64), types.intp))  # fmt: skip
+_KIND_D, _UPLO_U, _UPLO_L = 100, 85, 76  # ord("d") (float64), ord("U"), ord("L")
+
+
+@njit(**_JIT)
+def _cholesky(A, L):
+    """Lower ``L`` with ``L L^T = A`` (only the lower triangle of ``A`` is read); False if not PD.
+
+    LAPACK's ``potrf`` on ``L`` in place (``L`` may be a block ``M[:m, :m]`` of a larger C-order
+    array): a C-order lower triangle is the upper triangle of the same memory read in Fortran
+    order, hence ``uplo = "U"``. ``potrf`` fails (``info > 0``) on a matrix that is not positive
+    definite or meets a NaN pivot; an infinite pivot is caught by the check of the diagonal.
+    """
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            L[i, j] = A[i, j]
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
+    return _potrf(L, _UPLO_U)
+
+
+@njit(**_JIT)
+def _potrf(L, uplo):
+    """LAPACK's ``potrf`` on ``L`` in place, as column-major memory (``uplo``: which triangle of it holds the
+    matrix, the other being zeros); False if it fails or a pivot is not finite."""
+    n = L.shape[0]
+    if n == 0:
+        return True
+    if L.strides[1] == 8:  # unit-stride rows: in place; a block ``L[:m, :m]``'s row stride is the leading dimension
+        info = _xxpotrf(_KIND_D, uplo, n, L.ctypes, L.strides[0] // 8)
+    else:  # (never in these kernels) a contiguous copy; no recursive call: a cached recursion does not link
+        Lc = np.ascontiguousarray(L)
+        info = _xxpotrf(_KIND_D, uplo, n, Lc.ctypes, n)
+        L[:, :] = Lc
+    if info != 0:
+        return False
+    for i in range(n):
+        if not math.isfinite(L[i, i]):
+            return False
+    return True
+
+
+@njit(**_JIT)
+def _cholesky_t(A, L, rev):
+    """``_cholesky`` for the large-``n`` path (``_factor``): ``potrf`` on the transposed layout.
+
+    OpenBLAS's ``potrf`` is ~10 % faster for a column-major lower factor (``uplo = "L"``) than
+    for an upper one at n = 74-134, so the lower triangle of ``A`` (with ``rev``: of ``J A J``)
+    goes to the upper triangle of ``L`` (the same memory read column-major), and the factor
+    comes back to the lower triangle after. False if ``A`` is not positive definite."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            L[i, j] = 0.0
+        if rev:  # (J A J)[j, i] = A[n-1-j, n-1-i] = A[n-1-i, n-1-j] (j >= i): from the lower triangle
+            for j in range(i, n):
+                L[i, j] = A[n - 1 - i, n - 1 - j]
+        else:
+            for j in range(i, n):
+                L[i, j] = A[j, i]
+    if not _potrf(L, _UPLO_L):
+        return False
+    for i in range(n):
+        for j in range(i + 1, n):
+            L[j, i] = L[i, j]
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _cholesky_upper(A, U):
+    """Upper ``U`` with ``U^T U = A`` (only the lower triangle of ``A`` is read); False if not PD.
+
+    ``potrf`` with ``uplo = "L"`` on ``U`` as column-major memory, where the C-order upper triangle
+    is the lower one: the factor ``U = L^T`` of ``_cholesky``, whose rows in reverse order the NEES read
+    (``core.kernels.consistency``), as they read the compiled update's ``R+``.
+    """
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i):
+            U[i, j] = 0.0
+        for j in range(i, n):
+            U[i, j] = A[j, i]
+    return _potrf(U, _UPLO_L)
+
+
+@njit(**_JIT)
+def _cholesky_small(A, L):
+    """``_cholesky`` written out (left-looking), for the small blocks where LAPACK's call costs more than the work.
+
+    Row ``j`` of ``U = L^T`` (held in the upper triangle of ``L``, transposed at the end) is row
+    ``j`` of ``A``'s upper triangle minus a combination of the rows above it, divided by the
+    square root of its pivot.
+    """
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i, n):
+            L[i, j] = A[j, i]
+    for j in range(n):
+        _combine(L[j], j, n, L, L[:, j], 0, j, -1.0)
+        d = L[j, j]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        for c in range(j, n):
+            L[j, c] /= d
+    for i in range(n):
+        for j in range(i):
+            L[i, j] = L[j, i]
+            L[j, i] = 0.0
+    return True
+
+
+@njit(**_JIT)
+def _forward(L, b, out, lo=0):
+    """``out = L^-1 b`` (``L`` lower triangular, forward substitution; ``out`` may be ``b``).
+
+    ``lo``: ``b[:lo]`` is zero, so ``out[:lo]`` is too and the sums start at ``lo`` (the same
+    numbers as from 0 when ``lo`` is a multiple of 4: the terms skipped are exact zeros, and
+    ``_dot_row``'s four partial sums keep their terms).
+    """
+    n = L.shape[0]
+    for i in range(lo):
+        out[i] = 0.0
+    for i in range(lo, n):
+        if i < 16:  # short rows (the NEES's small blocks): one running sum costs less than four
+            t = b[i]
+            for k in range(lo, i):
+                t -= L[i, k] * out[k]
+        else:
+            t = b[i] - _dot_row(L, i, out, lo, i)
+        out[i] = t / L[i, i]
