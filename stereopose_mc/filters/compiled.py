@@ -240,6 +240,12 @@ def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: Fi
     return compiled_update(x, P, step, rows, fs, setup, x_true)
 
 
+@functools.lru_cache(maxsize=16)
+def _no_truth(n: int) -> Array:
+    """``(0, n)``: no true states for the update kernels (nothing evaluated; never written)."""
+    return np.empty((0, n))
+
+
 def _row_mask(keep: Array | None, b: int, m: int, C: int) -> Array:
     """``(b, m)`` rows that enter the update: the kept features' channels and the pseudo rows."""
     mask = np.ones((b, m), bool)
@@ -320,20 +326,18 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
             nd, ndd, cols, chart)  # fmt: skip
     if x_true is None:
-        xt = np.empty((0, x.shape[1]))
+        xt = _no_truth(x.shape[1])
     else:
         xt = x_true if x_true.ndim == 1 or every else x_true[rows]
         xt = _writable(np.broadcast_to(xt, x.shape))
     judge = (xt, chart == 2)  # the NEES's attitude error state (mc.trial.nees_and_pd): the attitude chart's P
     if iterated is None:
-        xo, Po, nu, nis, ok, Lo, ev, epd = ku.ekf_update_batch(*args, *judge)
+        xo, Po, nu, nis, ok, Lo, ev = ku.ekf_update_batch(*args, *judge)
         its, conv = one_iteration, converged
     else:
-        xo, Po, nu, nis, its, conv, ok, Lo, ev, epd = ku.iekf_update_batch(*args, iterated["tol"],
-            iterated["max_iter"], ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10,
-            *judge)  # fmt: skip
-    if x_true is None:
-        ev = epd = None
+        xo, Po, nu, nis, its, conv, ok, Lo, ev = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
+            ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10, *judge)  # fmt: skip
+    ev, epd = (None, None) if x_true is None else (ev[:, :8], ev[:, 8])  # views: patch writes them in place
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo, ev, epd)
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)

@@ -626,16 +626,56 @@ def _factor_given(R):
 
 
 @njit(**_JIT)
+def _take(buf, at, a, b):
+    """``buf[at : at + a b]`` as an ``a x b`` matrix (C order), and the next offset."""
+    return buf[at : at + a * b].reshape((a, b)), at + a * b
+
+
+@njit(**_JIT)
 def _nees_scratch(n, m):
-    """The scratch arrays of ``_nees_one`` for a state of ``n`` and a covariance of ``m`` columns."""
+    """The scratch arrays of ``_nees_one`` for a state of ``n`` and a covariance of ``m`` columns: views into one
+    float and one integer buffer (two allocations instead of 32: the update kernels make it at every call)."""
     ne = n - 1
     N = (n - 15) // 3
-    return (np.empty((ne, n)), np.empty((n, ne)), np.empty((ne, ne)), np.zeros(ne), np.empty((ne, n)), np.empty((n, ne)),
-            np.empty((3, n)), np.empty((ne, ne)), np.empty((m, m)), np.empty((m, m)), np.empty((ne, ne)), np.empty(ne),
-            np.empty(ne), np.zeros(ne, np.int64), np.zeros((ne, 3 + 3 * N), np.int64), np.zeros((ne, 3 + 3 * N)),
-            np.empty((ne, ne)), np.empty((ne, ne)), np.empty((ne, ne)), np.empty(ne), np.empty((3, ne)), np.empty(ne),
-            np.empty((ne, ne)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty(4), np.empty(4),
-            np.empty((6, 3)), np.empty((3, ne)), np.empty((6, 3)), np.empty((5, n)))  # fmt: skip
+    k = 3 + 3 * N
+    buf = np.empty(4 * ne * n + 7 * ne * ne + 2 * m * m + 8 * n + ne * (k + 11) + 71)  # the views below, in order
+    ints = np.zeros(ne + ne * k, np.int64)
+    Tm, at = _take(buf, 0, ne, n)
+    Sa, at = _take(buf, at, n, ne)
+    Mi, at = _take(buf, at, ne, ne)
+    e0, at = _take(buf, at, 1, ne)
+    TP, at = _take(buf, at, ne, n)
+    Pt, at = _take(buf, at, n, ne)
+    Sm, at = _take(buf, at, 3, n)
+    Pa, at = _take(buf, at, ne, ne)
+    Uf, at = _take(buf, at, m, m)
+    Rf, at = _take(buf, at, m, m)
+    Lr, at = _take(buf, at, ne, ne)
+    e, at = _take(buf, at, 1, ne)
+    eps, at = _take(buf, at, 1, ne)
+    vals, at = _take(buf, at, ne, k)
+    C, at = _take(buf, at, ne, ne)
+    L, at = _take(buf, at, ne, ne)
+    Lb, at = _take(buf, at, ne, ne)
+    w, at = _take(buf, at, 1, ne)
+    U, at = _take(buf, at, 3, ne)
+    u, at = _take(buf, at, 1, ne)
+    Y, at = _take(buf, at, ne, ne)
+    D, at = _take(buf, at, 3, 3)
+    Dt, at = _take(buf, at, 3, 3)
+    R, at = _take(buf, at, 3, 3)
+    dq, at = _take(buf, at, 1, 4)
+    tmp, at = _take(buf, at, 1, 4)
+    v3, at = _take(buf, at, 6, 3)
+    Sp, at = _take(buf, at, 3, ne)
+    Wp, at = _take(buf, at, 6, 3)
+    W5, at = _take(buf, at, 5, n)
+    e0[0, :] = 0.0
+    vals[:, :] = 0.0
+    cnt = ints[:ne]
+    cols = ints[ne:].reshape((ne, k))
+    return (Tm, Sa, Mi, e0[0], TP, Pt, Sm, Pa, Uf, Rf, Lr, e[0], eps[0], cnt, cols, vals, C, L, Lb, w[0], U, u[0], Y,
+            D, Dt, R, dq[0], tmp[0], v3, Sp, Wp, W5)  # fmt: skip
 
 
 @njit(**_JIT)

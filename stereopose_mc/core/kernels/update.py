@@ -162,14 +162,14 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     A Python call of the compiled ``iekf_update_batch`` with one plain Gauss-Newton step (not a
     kernel of its own: that was a second copy of the same machine code to load at start-up).
 
-    Returns ``(x+, P+, nu, nis, ok, R+, nees, pd)`` (``R+``, ``x_true``, ``attitude``, ``nees`` and ``pd`` as
+    Returns ``(x+, P+, nu, nis, ok, R+, nees)`` (``R+``, ``x_true``, ``attitude`` and ``nees`` as
     ``iekf_update_batch``'s); in the full chart the quaternion of ``x+`` is renormalized.
     """
     xt = np.empty((0, x.shape[1])) if x_true is None else x_true
-    xo, Po, nu, nis, _, _, ok, Ro, ev, epd = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal,
-                                                               pseudo, alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0,
-                                                               xt, attitude)  # fmt: skip
-    return xo, Po, nu, nis, ok, Ro, ev, epd
+    xo, Po, nu, nis, _, _, ok, Ro, ev = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
+                                                          alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0, xt,
+                                                          attitude)  # fmt: skip
+    return xo, Po, nu, nis, ok, Ro, ev
 
 
 @njit(**_JIT)
@@ -731,8 +731,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
 
     ``x_true``: the true states ``(B, nx)``, or ``(0, nx)``. Given, each posterior's NEES are evaluated as soon as it is
     formed, with ``P+`` and ``R+`` still in cache (``consistency._nees_one``, the per-trial body of
-    ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 8)`` and ``pd (B,)``,
-    1.0 or 0.0, both NaN where not evaluated (no truth given, or ``ok`` False).
+    ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 9)``, the 8 NEES and
+    ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False). (One array: each array a kernel
+    returns costs its boxing at every call, ~0.5 us, which a single trial's step pays in full.)
     """
     B, nx = x.shape
     n = P.shape[1]  # the filter's coordinates: the full state, or the error state
@@ -776,10 +777,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
-    ev = np.full((B, 8), np.nan)  # the posteriors' NEES (x_true given)
-    epd = np.full(B, np.nan)
+    ev = np.full((B, 9), np.nan)  # the posteriors' NEES and pd (x_true given)
     judged = x_true.shape[0] == B
-    nws = _nees_scratch(nx, n)
+    if judged:  # (only then: its views cost ~1 us to make and release, which a single trial's step would pay)
+        nws = _nees_scratch(nx, n)
     for b in range(B):
         xp = x[b]
         yb = y[b]
@@ -956,5 +957,5 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         else:
             _posterior_covariance_rev(L, LA, Po[b], Ro[b])  # its W = (M J)^T is P+'s square root J M^T
         if judged:
-            epd[b] = 1.0 if _nees_one(xo[b], Po[b], x_true[b], attitude, Ro[b], True, ev[b], nws) else 0.0
-    return xo, Po, nu, nis, its, conv, ok, Ro, ev, epd
+            ev[b, 8] = 1.0 if _nees_one(xo[b], Po[b], x_true[b], attitude, Ro[b], True, ev[b, :8], nws) else 0.0
+    return xo, Po, nu, nis, its, conv, ok, Ro, ev
