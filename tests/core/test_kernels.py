@@ -66,6 +66,25 @@ def test_F_matches_numpy_and_finite_differences():
     mask = np.zeros((n, n), bool)
     mask[:13, :13] = mask[:13, -2:] = True
     assert np.all(F[:, ~mask] == 0.0) and np.all(jacobians.F(x, RL, ND, NDD, MU_EARTH)[:, ~mask] == 0.0)
+    # and within it two diagonal blocks (the transition's Horner products and the covariance predict run on them):
+    # the translation (rows 0-5) sees columns 0-5 only, the rotation (rows 6-12) columns 6-12 and k
+    for Fb in (F, jacobians.F(x, RL, ND, NDD, MU_EARTH), fd[None]):
+        assert np.all(Fb[:, :6, 6:] == 0.0) and np.all(Fb[:, 6:13, :6] == 0.0) and np.all(Fb[:, 6:13, 13:-2] == 0.0)
+
+
+def test_transition_blocks_over_random_states_equal_the_dense_series():
+    """``transition_reduced_batch`` (Horner on F's two blocks) against the dense Taylor series of the whole ``F dt``
+    over states far and near (fast spin, large k, a long step): the same to a few ulps, and zero off the blocks."""
+    for seed in range(5):
+        x = states(B=6, N=5, seed=seed)
+        x[:, 6:9] *= 10.0 ** (seed - 2)
+        x[:, -2:] *= 3.0
+        Fd = jacobians.F(x, RL, ND, NDD, MU_EARTH)
+        for dt, order in ((0.5, 3), (2.0, 4), (10.0, 6)):
+            T = km.transition_reduced_batch(km.F_reduced_batch(x, RL, ND, NDD, MU_EARTH), dt, order)
+            Phi = km.dense_transition(T, x.shape[1])
+            assert rel(Phi, kalman.transition_matrix(Fd, dt, "taylor", order)) < 1e-14
+            assert np.all(T[:, :6, 6:] == 0.0) and np.all(T[:, 6:13, :6] == 0.0)
 
 
 @pytest.mark.parametrize("order", [2, 4, 6])
