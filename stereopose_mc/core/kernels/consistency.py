@@ -358,12 +358,8 @@ def _preimage(Tm, e, dx, N):
     dx[n - 2], dx[n - 1] = e[ne - 2], e[ne - 1]
     for r in range(12, 12 + 3 * N):
         dx[r + 1] = e[r] - (Tm[r, 9] * dx[9] + Tm[r, 10] * dx[10] + Tm[r, 11] * dx[11] + Tm[r, 12] * dx[12])
-    for r in range(6):  # rho, rho_dot: their own column r; their other columns are solved (or zero in T)
-        s = e[r]
-        for c in range(n):
-            if c != r:
-                s -= Tm[r, c] * dx[c]
-        dx[r] = s
+    for r in range(6):  # rho, rho_dot: their own column r (dx[r], still 0, adds nothing); the others solved before
+        dx[r] = e[r] - _dot_row(Tm, r, dx, 0, n)
 
 
 @njit(**_JIT)
@@ -387,29 +383,23 @@ def _forward5(R, W):
 @njit(**_JIT)
 def _project_off(W, j0, j1):
     """Rows ``j0..j1-1`` of ``W`` made orthonormal (modified Gram-Schmidt, in order) and ``W[0]`` projected off
-    each in turn; returns ``|W[0]|^2`` after the first projection (the others are in ``W[0]``)."""
+    each in turn; returns ``|W[0]|^2`` after the first projection (the others are in ``W[0]``). Each dot product
+    in four partial sums (``model._dot_row``: one running sum is a chain of dependent additions)."""
     n = W.shape[1]
     first = 0.0
     for j in range(j0, j1):
         for k in range(j0, j):
-            s = 0.0
-            for i in range(n):
-                s += W[k, i] * W[j, i]
+            s = _dot_row(W, k, W[j], 0, n)
             for i in range(n):
                 W[j, i] -= s * W[k, i]
-        s = 0.0
-        for i in range(n):
-            s += W[j, i] * W[j, i]
-        s = 1.0 / math.sqrt(s)
-        c = 0.0
+        s = 1.0 / math.sqrt(_dot_row(W, j, W[j], 0, n))
         for i in range(n):
             W[j, i] *= s
-            c += W[j, i] * W[0, i]
+        c = _dot_row(W, j, W[0], 0, n)
         for i in range(n):
             W[0, i] -= c * W[j, i]
         if j == j0:
-            for i in range(n):
-                first += W[0, i] * W[0, i]
+            first = _dot_row(W, 0, W[0], 0, n)
     return first
 
 
@@ -450,10 +440,8 @@ def _one_full(xh, P, Rp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
                 s += Tm[r, 13 + 3 * i + j]
             g[r] = -s
     _forward5(Rp, W)
-    out[1] = 0.0
     out[0] = _project_off(W, 1, 5)
-    for i in range(n):
-        out[1] += W[0, i] * W[0, i]
+    out[1] = _dot_row(W, 0, W[0], 0, n)
     # --- blocks: rho, rho_dot, omega, the points and k are P's own; the attitude's is Xi_att P_qq Xi_att^T
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     q0, q1, q2, q3 = xh[9] / nh, xh[10] / nh, xh[11] / nh, xh[12] / nh
@@ -514,13 +502,9 @@ def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
                     g2 += v
         W[0, r], W[1, r], W[2, r], W[3, r], W[4, r] = s, g0, g1, g2, 0.0
     _forward5(Rp, W)
-    out[0] = 0.0
-    for i in range(ne):
-        out[0] += W[0, i] * W[0, i]
+    out[0] = _dot_row(W, 0, W[0], 0, ne)
     _project_off(W, 1, 4)
-    out[1] = 0.0
-    for i in range(ne):
-        out[1] += W[0, i] * W[0, i]
+    out[1] = _dot_row(W, 0, W[0], 0, ne)
     # --- blocks: P's own (rho, rho_dot, omega, attitude, the points, k)
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)

@@ -825,7 +825,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         cost = c0
         for i in range(n):
             z[i] = 0.0
-        _keep_linearization(A, Afin)
+        if control != 0:  # (plain Gauss-Newton steps are always taken: LA stays the factor of the last A, fresh)
+            _keep_linearization(A, Afin)
         failed = False
         fresh = True
         lam = 1e-3  # Levenberg-Marquardt's damping, per trial
@@ -899,9 +900,11 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                         zn[i] = z[i]
                     lam = lam * 10.0
             its[b] += 1
-            # size of the increment dz = zn - z
+            # size of the increment dz = zn - z (with tol = 0, the EKF's one step, none is small: not computed)
             size = 0.0
-            if stopping == 0:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
+            if tol <= 0.0:
+                pass
+            elif stopping == 0:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
                 for i in range(n):
                     dx[i] = zn[i] - z[i]
                 for i in range(n):
@@ -923,10 +926,10 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                         size += dx[i] * dx[i]
                     size = math.sqrt(size)
             small = accepted and size < tol
-            if accepted:
-                _keep_linearization(A, Afin)
-            else:
+            if not accepted:
                 fresh = False  # Afin is an earlier iterate's: factorize it again below
+            elif control != 0:
+                _keep_linearization(A, Afin)
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
