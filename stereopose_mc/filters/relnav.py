@@ -120,11 +120,12 @@ def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int, alpha_var: 
 
 
 def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
-    """``(B, m)`` from per-feature measurements ``(B, N, C)`` of the visible features."""
-    B = y_feat.shape[0]
-    y = y_feat[:, visible].reshape(B, -1)
-    if pseudo:
-        y = np.concatenate([y, np.zeros((B, 3))], axis=-1)
+    """``(B, m)`` from per-feature measurements ``(B, N, C)`` of the visible features (written into one new array:
+    this runs at every step of every chunk)."""
+    B, N, C = y_feat.shape
+    nv = int(np.count_nonzero(visible))
+    y = np.zeros((B, nv * C + (3 if pseudo else 0)))
+    y[:, : nv * C].reshape(B, nv, C)[...] = y_feat if nv == N else y_feat[:, visible]
     return y
 
 

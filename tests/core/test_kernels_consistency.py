@@ -432,3 +432,25 @@ def test_nees_scratch_views_tile_their_buffers_without_overlap(n, m):
         a[...] = i + 1
     for i, a in enumerate(ws):
         assert (a == i + 1).all(), i
+
+
+def test_a_diagonal_covariance_is_factorized_as_potrf_does():
+    """``_own_root``'s fast path for a diagonal ``P`` (the initial covariance): the same bits as ``potrf``'s factor
+    (``_cholesky_upper``), reversed; the same refusals (a zero, negative, infinite or NaN variance); a ``P`` with one
+    off-diagonal entry takes ``potrf`` itself."""
+    from stereopose_mc.core.kernels.cholesky import _cholesky_upper
+
+    rng = np.random.default_rng(12)
+    cases = [rng.random(30) * 10.0 ** rng.uniform(-9, 4, 30)] + [
+        np.where(np.arange(6) == 2, bad, 1.0 + np.arange(6.0)) for bad in (0.0, -1.0, np.inf, np.nan)]
+    for d in cases:
+        n = d.size
+        good = bool(np.all(d > 0) and np.all(np.isfinite(d)))
+        Ps = [np.diag(d)] + ([np.diag(d) + np.eye(n, k=-1) * 1e-3 * d.min()] if good else [])
+        for P in Ps:
+            R, U, U2 = np.full((n, n), 7.0), np.empty((n, n)), np.empty((n, n))
+            got, want = kc._own_root(P, U, R), _cholesky_upper(P, U2)
+            assert got == want == good
+            if got:
+                np.testing.assert_array_equal(R, U2[::-1])
+    assert kc._diagonal(np.diag(cases[0])) and not kc._diagonal(np.diag(cases[0]) + np.eye(30, k=-29))

@@ -585,12 +585,37 @@ def _finite(v):
 
 
 @njit(**_JIT)
+def _diagonal(P):
+    """Whether the square ``P`` is diagonal (its lower triangle read: a dense ``P`` answers at its first entry)."""
+    n = P.shape[0]
+    for i in range(1, n):
+        for j in range(i):
+            if P[i, j] != 0.0:
+                return False
+    return True
+
+
+@njit(**_JIT)
 def _own_root(P, U, R):
     """``R = J U``, ``U`` the upper Cholesky factor of ``P`` (``P = U^T U = R^T R``), the layout of the compiled
-    update's square roots (``nees_batch``); False if ``P`` is not positive definite (``_cholesky_upper``)."""
+    update's square roots (``nees_batch``); False if ``P`` is not positive definite (``_cholesky_upper``).
+
+    A diagonal ``P`` (the scenario's initial covariance, at step 0) is factorized without ``potrf``: ``U`` is the
+    square root of its diagonal, the numbers ``potrf`` gives (``sqrt(P_jj - 0)``, ``0 / U_jj``).
+    """
+    n = U.shape[0]
+    if _diagonal(P):
+        for j in range(n):
+            d = P[j, j]
+            if not (d > 0.0 and d < np.inf):
+                return False
+        for j in range(n):
+            for i in range(n):
+                R[j, i] = 0.0
+            R[j, n - 1 - j] = math.sqrt(P[n - 1 - j, n - 1 - j])
+        return True
     if not _cholesky_upper(P, U):
         return False
-    n = U.shape[0]
     for j in range(n):
         for i in range(n):
             R[j, i] = U[n - 1 - j, i]

@@ -786,8 +786,15 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         yb = y[b]
         mk = mask[b]
         Ro[b, n - 1, 0] = np.nan  # no factor of P+ (yet): set below where the update gives it
-        for r in range(m):
-            rws[r] = 1.0 / math.sqrt(R[b, r])
+        same = b > 0  # R^-1/2: the last trial's where R is the same (a filter's R, the same for every trial)
+        if same:
+            for r in range(m):
+                if R[b, r] != R[b - 1, r]:
+                    same = False
+                    break
+        if not same:
+            for r in range(m):
+                rws[r] = 1.0 / math.sqrt(R[b, r])
         if cen:
             _center_cov(P[b], A, T, Np)
             if not _cholesky_t(A, L, False):
