@@ -169,12 +169,12 @@ def test_cholesky_on_the_transposed_layout(n):
     assert not ku._cholesky_t(bad, L, False)
 
 
-@pytest.mark.parametrize("n", [1, 5, 32, 33, 64, 65, 70, 134])
+@pytest.mark.parametrize("n", [1, 5, 8, 9, 17, 29, 30, 32, 33, 64, 65, 70, 134])
 def test_reverse_factor_solve_and_posterior_covariance(n):
     """``_factor(A, LA)`` is the Cholesky factor of ``A`` in reverse order (``A = U U^T``, ``U = J LA J`` upper
     triangular; up to 64 columns copied and factorized in place, past it on the transposed layout), reading only
     ``A``'s lower triangle; ``_solve`` with it equals numpy's solve; ``_posterior_covariance_rev`` (``L U^-T``, lower
-    triangular, times its transpose; blocked past 16 rows) equals ``L A^-1 L^T`` by numpy, is exactly symmetric,
+    triangular, times its transpose; blocked by 8 rows up to 32 columns, by 16 past them) equals ``L A^-1 L^T`` by numpy, is exactly symmetric,
     and leaves in ``W`` the square root ``J M^T`` of it, ``M`` its Cholesky factor; False on a matrix that is not
     positive definite."""
     from stereopose_mc.core.kernels import update as ku

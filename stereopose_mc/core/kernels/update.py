@@ -66,6 +66,9 @@ SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by b
 LARGE_N = 64  # past this size the update takes its large-n path (module docstring); measured crossover n ~ 60
 STAIR_BLOCK = 8  # the strips of rows of A in _whiten_staircase
 REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
+# its blocks up to 32 columns (case B: 29, 30): a full-state EKF update in 14.3-14.6 us per trial at 8 against
+# 14.6-15.0 at 16, 15.1 at 6, 16.2 at 4 and 16.1 at 32 (one block), measured alternated on the same arguments
+REV_BLOCK_SMALL = 8
 
 
 # BLAS's dgemm as Numba's own ``np.dot`` calls it (resolved at run time like ``cholesky._xxpotrf``), called directly for
@@ -471,10 +474,10 @@ def _posterior_covariance_rev(L, LA, out, W):
     ``n - 1 - j`` (``W[j, i] = M[i, n - 1 - j]``), which the products skip: each BLAS ``gemm`` on a
     block of ``REV_BLOCK`` rows of ``W`` runs over the columns that block reaches. Then
     ``out = W^T W`` by strips of ``REV_BLOCK`` rows the same way, lower triangle mirrored:
-    exactly symmetric.
+    exactly symmetric. (Blocks of ``REV_BLOCK_SMALL`` rows up to 32 columns.)
     """
     n = L.shape[0]
-    nb = REV_BLOCK
+    nb = REV_BLOCK_SMALL if n <= 32 else REV_BLOCK
     ab = np.empty(3)
     ab[0], ab[1], ab[2] = -1.0, 1.0, 0.0
     for j0 in range(0, n, nb):
