@@ -188,9 +188,18 @@ def measurement_model(setup: Setup, step: relnav.StepMeasurement):
         if not jac:
             return km.measure_h_batch(x, *args), None
         hx, Hval = km.measure_batch(x, *args, True)
-        return hx, km.dense(Hval, km.measurement_columns(x.shape[1], vis, C, setup.pseudo), x.shape[1])
+        n = x.shape[1]
+        return hx, km.dense(Hval, _model_columns(n, tuple(vis.tolist()), C, setup.pseudo), n)
 
     return measure
+
+
+@functools.lru_cache(maxsize=256)
+def _model_columns(n: int, vis: tuple, C: int, pseudo: bool) -> Array:
+    """``model.measurement_columns`` kept per state size and visible features (never written)."""
+    out = km.measurement_columns(n, np.array(vis, dtype=np.int64), C, pseudo)
+    out.flags.writeable = False
+    return out
 
 
 def numpy_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):

@@ -151,11 +151,12 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = No
     else:  # a positive definite P was finite, with a finite x: only the others are read again
         finite = pd.copy()
         rest = np.flatnonzero(~pd)
-        finite[rest] = np.isfinite(x[rest]).all(axis=-1) & np.isfinite(P[rest]).all(axis=(-1, -2))
+        if rest.size:
+            finite[rest] = np.isfinite(x[rest]).all(axis=-1) & np.isfinite(P[rest]).all(axis=(-1, -2))
     lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
     over = err > lim
     names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
-    for i in np.flatnonzero(~finite | ~pd | over.any(axis=-1)):
+    for i in np.flatnonzero(~pd | over.any(axis=-1)):  # (not finite implies not pd)
         if not finite[i]:
             reasons[i] = "non-finite state or covariance"
         elif not pd[i]:

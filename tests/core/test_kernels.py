@@ -104,6 +104,22 @@ def test_transition_and_covariance_predict_match_dense(order):
     assert np.array_equal(got, np.swapaxes(got, -1, -2))
 
 
+def test_dense_adds_each_rows_values_at_their_columns():
+    """``model.dense``: every row's values added at their columns (the padding's zeros and any repeated column
+    summed, in the order of the row's entries), as ``np.add.at`` does; the row-sparse input is not written."""
+    rng = np.random.default_rng(6)
+    B, m, k, n = 3, 7, 16, 12
+    Hval = rng.standard_normal((B, m, k))
+    cols = rng.integers(0, n, size=(m, k))
+    cols[:, -3:] = 0  # padding on column 0, with values
+    Hval[:, 2, -3:] = 0.0
+    ref = np.zeros((B, m, n))
+    np.add.at(ref, (slice(None), np.repeat(np.arange(m), k), cols.ravel()), Hval.reshape(B, -1))
+    before = Hval.copy()
+    np.testing.assert_array_equal(km.dense(Hval, cols, n), ref)
+    np.testing.assert_array_equal(Hval, before)
+
+
 @pytest.mark.parametrize("disparity,pseudo,focal", [(False, True, 1.0), (True, True, 800.0), (False, False, 1.0)])
 def test_measurement_matches_numpy(disparity, pseudo, focal):
     x = states(N=6)
