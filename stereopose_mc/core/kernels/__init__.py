@@ -8,7 +8,9 @@ loaded from Numba's on-disk cache, ``cache=True``). ``core/kernels/model.py`` ho
 covariance predict, the row-sparse ``H_e``); ``core/kernels/attitude.py`` the same for the
 attitude error state; ``core/kernels/charts.py`` the batch entry points of both charts (the
 chart's code as an argument); ``core/kernels/update.py`` the EKF and IEKF updates in any of the
-three charts; ``core/kernels/consistency.py`` the per-step NEES. ``_cache`` keys Numba's cache by the
+three charts (which, given the truth, evaluate each posterior's NEES as they form it);
+``core/kernels/consistency.py`` the per-step NEES; ``core/kernels/cholesky.py`` the small
+Cholesky factorizations and solves both use. ``_cache`` keys Numba's cache by the
 whole package's source; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``.
 """
 
