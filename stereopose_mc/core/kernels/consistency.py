@@ -635,56 +635,38 @@ def _factor_given(R):
 
 
 @njit(**_JIT)
-def _take(buf, at, a, b):
-    """``buf[at : at + a b]`` as an ``a x b`` matrix (C order), and the next offset."""
-    return buf[at : at + a * b].reshape((a, b)), at + a * b
+def _take(buf, at, c, a, b):
+    """``buf[at : at + c a b]`` as ``c`` matrices ``a x b`` (C order), and the next offset."""
+    return buf[at : at + c * a * b].reshape((c, a, b)), at + c * a * b
 
 
 @njit(**_JIT)
 def _nees_scratch(n, m):
     """The scratch arrays of ``_nees_one`` for a state of ``n`` and a covariance of ``m`` columns: views into one
-    float and one integer buffer (two allocations instead of 32: the update kernels make it at every call)."""
+    float and one integer buffer (two allocations instead of 32: the update kernels make it at every call that
+    evaluates NEES), grouped by shape."""
     ne = n - 1
-    N = (n - 15) // 3
-    k = 3 + 3 * N
+    k = 3 + 3 * ((n - 15) // 3)
     buf = np.empty(4 * ne * n + 7 * ne * ne + 2 * m * m + 8 * n + ne * (k + 11) + 71)  # the views below, in order
     ints = np.zeros(ne + ne * k, np.int64)
-    Tm, at = _take(buf, 0, ne, n)
-    Sa, at = _take(buf, at, n, ne)
-    Mi, at = _take(buf, at, ne, ne)
-    e0, at = _take(buf, at, 1, ne)
-    TP, at = _take(buf, at, ne, n)
-    Pt, at = _take(buf, at, n, ne)
-    Sm, at = _take(buf, at, 3, n)
-    Pa, at = _take(buf, at, ne, ne)
-    Uf, at = _take(buf, at, m, m)
-    Rf, at = _take(buf, at, m, m)
-    Lr, at = _take(buf, at, ne, ne)
-    e, at = _take(buf, at, 1, ne)
-    eps, at = _take(buf, at, 1, ne)
-    vals, at = _take(buf, at, ne, k)
-    C, at = _take(buf, at, ne, ne)
-    L, at = _take(buf, at, ne, ne)
-    Lb, at = _take(buf, at, ne, ne)
-    w, at = _take(buf, at, 1, ne)
-    U, at = _take(buf, at, 3, ne)
-    u, at = _take(buf, at, 1, ne)
-    Y, at = _take(buf, at, ne, ne)
-    D, at = _take(buf, at, 3, 3)
-    Dt, at = _take(buf, at, 3, 3)
-    R, at = _take(buf, at, 3, 3)
-    dq, at = _take(buf, at, 1, 4)
-    tmp, at = _take(buf, at, 1, 4)
-    v3, at = _take(buf, at, 6, 3)
-    Sp, at = _take(buf, at, 3, ne)
-    Wp, at = _take(buf, at, 6, 3)
-    W5, at = _take(buf, at, 5, n)
-    e0[0, :] = 0.0
-    vals[:, :] = 0.0
-    cnt = ints[:ne]
-    cols = ints[ne:].reshape((ne, k))
-    return (Tm, Sa, Mi, e0[0], TP, Pt, Sm, Pa, Uf, Rf, Lr, e[0], eps[0], cnt, cols, vals, C, L, Lb, w[0], U, u[0], Y,
-            D, Dt, R, dq[0], tmp[0], v3, Sp, Wp, W5)  # fmt: skip
+    sq, at = _take(buf, 0, 7, ne, ne)  # Mi, Pa, Lr, C, L, Lb, Y
+    tn, at = _take(buf, at, 2, ne, n)  # Tm, TP
+    nt, at = _take(buf, at, 2, n, ne)  # Sa, Pt
+    mm, at = _take(buf, at, 2, m, m)  # Uf, Rf
+    vec, at = _take(buf, at, 1, 5, ne)  # e0, e, eps, w, u
+    vals, at = _take(buf, at, 1, ne, k)
+    d3, at = _take(buf, at, 3, 3, 3)  # D, Dt, R
+    q4, at = _take(buf, at, 1, 2, 4)  # dq, tmp
+    s6, at = _take(buf, at, 2, 6, 3)  # v3, Wp
+    s3, at = _take(buf, at, 2, 3, ne)  # U, Sp
+    sm, at = _take(buf, at, 1, 3, n)  # Sm
+    w5, at = _take(buf, at, 1, 5, n)  # W5
+    vec[0, 0, :] = 0.0
+    vals[0, :, :] = 0.0
+    v, q = vec[0], q4[0]
+    return (tn[0], nt[0], sq[0], v[0], tn[1], nt[1], sm[0], sq[1], mm[0], mm[1], sq[2], v[1], v[2], ints[:ne],
+            ints[ne:].reshape((ne, k)), vals[0], sq[3], sq[4], sq[5], v[3], s3[0], v[4], sq[6], d3[0], d3[1], d3[2],
+            q[0], q[1], s6[0], s3[1], s6[1], w5[0])  # fmt: skip
 
 
 @njit(**_JIT)
