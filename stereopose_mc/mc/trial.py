@@ -236,11 +236,12 @@ def run_filter(
             feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
+            x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
+            x_true_k = x_true_all if x_true_all.ndim == 1 else x_true_all[active]
             update = stepper.update
             if kernels == "compiled":  # the update evaluates the posteriors' NEES against the truth, in cache
-                update = functools.partial(update, x_true=true_state(truth.x, k, all_trials))
+                update = functools.partial(update, x_true=x_true_all)
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, update)
-            x_true_k = true_state(truth.x, k, active)
             e = errors_of(u.x, x_true_k, kernels)
             try:
                 v, pd = _posterior_nees(u, x_true_k, fs.error_state, kernels)
