@@ -98,6 +98,7 @@ class BenchConfig:
     # `steps`: ours against FilterPy per computed step, run as the engine runs a chunk (the first
     # `baseline_trials` of them are FilterPy's trials)
     baseline_batch: int = 250
+    baseline_rounds: int = 3  # `steps`: FilterPy's loop and the judged row, alternated (medians of each)
     keep_runs: bool = False
     blas_threads: int | None = None  # OPENBLAS/OMP/MKL_NUM_THREADS for the spmc subprocesses (None: as is)
     inproc_threads: int | None = 1  # BLAS threads of the in-process sections (the engine's chunks use 1)
@@ -112,7 +113,7 @@ class BenchConfig:
             mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
             feature_points=(5, 10, 20),
             scaling_batch=20, scaling_steps=2, growth_rounds=3, memory_trials=1000, baseline_trials=20,
-            baseline_batch=20,
+            baseline_batch=20, baseline_rounds=1,
         )  # fmt: skip
         base.update(kw)
         return cls(**base)

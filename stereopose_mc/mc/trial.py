@@ -184,7 +184,6 @@ def run_filter(
     B, n = x0_hat.shape
     K = setup.steps
     err = np.full((B, K + 1, 6), np.nan)
-    nees = np.full((B, K + 1), np.nan)
     nis = np.full((B, K + 1), np.nan)
     # measurement dimension per step: visible features x channels (+ 3 pseudo rows)
     nis_dof = visible.sum(axis=1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
@@ -199,8 +198,13 @@ def run_filter(
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     P = estimators.initial_covariance(x, P, fs)
     err[:, 0] = errors_of(x, true_state(truth.x, 0, np.arange(B)), kernels)
-    parts = {k: np.full((B, K + 1), np.nan) for k in es.nees_dof(n) if k != "nees"}
-    _record_nees(nees, parts, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state, kernels)
+    # every NEES of every step in one array, in the compiled update's column order (``_nees_keys``), stored at each
+    # step by one assignment; ``nees`` and ``parts`` (``FilterRun``'s) are its columns
+    keys = _nees_keys()
+    nees_all = np.full((B, K + 1, len(keys)), np.nan)
+    nees = nees_all[..., keys.index("nees")]
+    parts = {k: nees_all[..., keys.index(k)] for k in es.nees_dof(n) if k != "nees"}
+    _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state, kernels)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -261,7 +265,7 @@ def run_filter(
             gated[active, k] = u.rejected
         nis[active, k] = u.nis
         if v is not None:
-            _store_nees(nees, parts, active, k, v)
+            nees_all[active, k] = v
         if k >= bounds.nis_window_steps and truth.t[k - bounds.nis_window_steps + 1] >= bounds.nis_start_s - 1e-9:
             w0 = k - bounds.nis_window_steps + 1
             with warnings.catch_warnings():
@@ -465,12 +469,14 @@ def nees_and_pd(x: Array, P: Array, x_true: Array, error_state: str = "attitude"
         return aligned.nees_report(x, aligned_covariance(x, P, error_state), x_true), None
 
 
-def _posterior_nees(u, x_true: Array, error_state: str, kernels: str) -> tuple[dict[str, Array], Array | None]:
-    """``nees_and_pd`` of the update ``u``'s posteriors: those the compiled update evaluated (``u.nees``), the
-    others (the trials numpy updated, or every trial when none was evaluated) computed here."""
+def _posterior_nees(u, x_true: Array, error_state: str, kernels: str) -> tuple[Array, Array | None]:
+    """``nees_and_pd`` of the update ``u``'s posteriors as one array ``(B, 8)`` in ``_nees_keys``' order: those the
+    compiled update evaluated (``u.nees``), the others (the trials numpy updated, or every trial when none was
+    evaluated) computed here."""
     ev, epd = getattr(u, "nees", None), getattr(u, "nees_pd", None)
     if ev is None:
-        return nees_and_pd(u.x, u.P, x_true, error_state, kernels, getattr(u, "P_factor", None))
+        v, pd = nees_and_pd(u.x, u.P, x_true, error_state, kernels, getattr(u, "P_factor", None))
+        return _nees_array(v), pd
     todo = np.isnan(epd)
     pd = epd == 1.0
     if todo.any():
@@ -479,9 +485,9 @@ def _posterior_nees(u, x_true: Array, error_state: str, kernels: str) -> tuple[d
         xt = x_true if x_true.ndim == 1 else x_true[rest]
         v, p = nees_and_pd(u.x[rest], u.P[rest], xt, error_state, kernels,
                            None if u.P_factor is None else u.P_factor[rest])  # fmt: skip
-        ev[rest] = np.stack([v[k] for k in _nees_keys()], axis=-1)
+        ev[rest] = _nees_array(v)
         pd[rest] = p
-    return {k: ev[:, j] for j, k in enumerate(_nees_keys())}, pd
+    return ev, pd
 
 
 def _nees_keys() -> tuple[str, ...]:
@@ -491,17 +497,17 @@ def _nees_keys() -> tuple[str, ...]:
     return KEYS
 
 
-def _store_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, v: dict[str, Array]) -> None:
-    nees[rows, k] = v["nees"]
-    for name, a in parts.items():
-        a[rows, k] = v[name]
+def _nees_array(v: dict[str, Array]) -> Array:
+    """``nees_of``'s dict as an array ``(B, 8)`` in ``_nees_keys``' order."""
+    return np.stack([v[k] for k in _nees_keys()], axis=-1)
 
 
-def _record_nees(nees: Array, parts: dict[str, Array], rows: Array, k: int, x: Array, P: Array, x_true: Array,
+def _record_nees(nees_all: Array, rows: Array, k: int, x: Array, P: Array, x_true: Array,
                  error_state: str = "attitude", kernels: str = "numpy") -> None:  # fmt: skip
+    """``nees_all[rows, k]``: the NEES of ``(x, P)`` (left NaN where linear algebra fails)."""
     with np.errstate(all="ignore"):
         try:
-            _store_nees(nees, parts, rows, k, nees_of(x, P, x_true, error_state, kernels))
+            nees_all[rows, k] = _nees_array(nees_of(x, P, x_true, error_state, kernels))
         except np.linalg.LinAlgError:
             pass
 

@@ -363,8 +363,9 @@ def test_the_update_evaluates_its_posteriors_nees_as_the_nees_kernel(kind, error
     np.testing.assert_array_equal(u.nees_pd[done] == 1.0, pd[done])
     assert pd[done].all() and np.isfinite(u.nees[done]).all()
     v, p = trial._posterior_nees(u, xt, error_state, "compiled")
-    for key in kc.KEYS:
-        np.testing.assert_array_equal(v[key], ref[key], key)
+    assert v.shape == (len(x), len(kc.KEYS))
+    for j, key in enumerate(kc.KEYS):
+        np.testing.assert_array_equal(v[:, j], ref[key], key)
     np.testing.assert_array_equal(p, pd)
 
 
