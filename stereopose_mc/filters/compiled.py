@@ -347,6 +347,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         xo, Po, nu, nis, its, conv, ok, Lo, ev = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10, *judge)  # fmt: skip
     ev, epd = (None, None) if x_true is None else (ev[:, :8], ev[:, 8])  # views: patch writes them in place
+    Lo = Lo if Lo.shape[0] == b else None  # (given the truth the kernels keep P+'s square root to the NEES)
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo, ev, epd)
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)

@@ -735,7 +735,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     ``x_true``: the true states ``(B, nx)``, or ``(0, nx)``. Given, each posterior's NEES are evaluated as soon as it is
     formed, with ``P+`` and ``R+`` still in cache (``consistency._nees_one``, the per-trial body of
     ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 9)``, the 8 NEES and
-    ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False). (One array: each array a kernel
+    ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False); and ``R+`` is not returned
+    (``(0, n, n)``): the NEES were its only reader. (One array: each array a kernel
     returns costs its boxing at every call, ~0.5 us, which a single trial's step pays in full.)
     """
     B, nx = x.shape
@@ -743,7 +744,12 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     m = y.shape[1]
     xo = np.empty((B, nx))
     Po = np.empty((B, n, n))
-    Ro = np.empty((B, n, n))  # P+ = Ro^T Ro, Ro = J U+ (Ro[b, n - 1, 0] NaN: not given)
+    # P+ = Ro^T Ro, Ro = J U+ (Ro[b, n - 1, 0] NaN: not given); returned without the truth only (judged, the NEES
+    # read each trial's from Rs, kept in cache: nothing else reads it, and a (B, n, n) array written for nothing is
+    # 1.8 MB of memory traffic per step at 250 trials of case B)
+    judged = x_true.shape[0] == B
+    Ro = np.empty((0 if judged else B, n, n))
+    Rs = np.empty((n, n))
     nu = np.empty((B, m))
     nis = np.empty(B)
     its = np.zeros(B, np.int64)
@@ -781,14 +787,14 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     ev = np.full((B, 9), np.nan)  # the posteriors' NEES and pd (x_true given)
-    judged = x_true.shape[0] == B
     if judged:  # (only then: its views cost ~1 us to make and release, which a single trial's step would pay)
         nws = _nees_scratch(nx, n)
     for b in range(B):
         xp = x[b]
         yb = y[b]
         mk = mask[b]
-        Ro[b, n - 1, 0] = np.nan  # no factor of P+ (yet): set below where the update gives it
+        Rb = Rs if judged else Ro[b]
+        Rb[n - 1, 0] = np.nan  # no factor of P+ (yet): set below where the update gives it
         same = b > 0  # R^-1/2: the last trial's where R is the same (a filter's R, the same for every trial)
         if same:
             for r in range(m):
@@ -968,7 +974,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _posterior_covariance_rev(L, LA, A, T)
             _uncenter_cov(A, Po[b], T, Np)
         else:
-            _posterior_covariance_rev(L, LA, Po[b], Ro[b])  # its W = (M J)^T is P+'s square root J M^T
+            _posterior_covariance_rev(L, LA, Po[b], Rb)  # its W = (M J)^T is P+'s square root J M^T
         if judged:
-            ev[b, 8] = 1.0 if _nees_one(xo[b], Po[b], x_true[b], attitude, Ro[b], True, ev[b, :8], nws) else 0.0
+            ev[b, 8] = 1.0 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nws) else 0.0
     return xo, Po, nu, nis, its, conv, ok, Ro, ev
