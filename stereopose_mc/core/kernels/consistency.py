@@ -218,10 +218,10 @@ def _gauge_forward(R, U, N):
             s0 -= c * U[0, k]
             s1 -= c * U[1, k]
             s2 -= c * U[2, k]
-        d = R[ne - 1 - i, i]
-        U[0, i] = s0 / d
-        U[1, i] = s1 / d
-        U[2, i] = s2 / d
+        r = 1.0 / R[ne - 1 - i, i]  # (one division per row, not three)
+        U[0, i] = s0 * r
+        U[1, i] = s1 * r
+        U[2, i] = s2 * r
 
 
 @njit(**_JIT)
@@ -376,8 +376,8 @@ def _forward5(R, W):
             s2 -= c * W[2, k]
             s3 -= c * W[3, k]
             s4 -= c * W[4, k]
-        d = R[n - 1 - i, i]
-        W[0, i], W[1, i], W[2, i], W[3, i], W[4, i] = s0 / d, s1 / d, s2 / d, s3 / d, s4 / d
+        r = 1.0 / R[n - 1 - i, i]  # (one division per row, not five)
+        W[0, i], W[1, i], W[2, i], W[3, i], W[4, i] = s0 * r, s1 * r, s2 * r, s3 * r, s4 * r
 
 
 @njit(**_JIT)

@@ -498,9 +498,9 @@ def _posterior_covariance_rev(L, LA, out, W):
         for j in range(j0, j1):
             lo = n - 1 - j
             _combine(W[j], lo, n, W, LA[j], j0, j, -1.0)
-            d = LA[j, j]
+            r = 1.0 / LA[j, j]  # (a product by the reciprocal: n (n + 1) / 2 divisions were ~0.4 us per trial)
             for i in range(lo, n):
-                W[j, i] /= d
+                W[j, i] *= r
     # out[a0:a1, :a1] = sum over the rows r of W that reach column a1 - 1 (r >= n - a1) of W[r, a0:a1]^T W[r, :a1],
     # by blocks of rows r0:r1, each over the columns n - r1: (the others are zero there)
     for a0 in range(0, n, nb):
