@@ -360,8 +360,9 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     ku._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi)
     if n > ku.LARGE_N:
         assert np.array_equal(A2, A) and np.array_equal(g2, g)
-    else:  # the dense product below LARGE_N
+    else:  # the dense product below LARGE_N (g summed row by row as the rows are formed)
         np.testing.assert_allclose(A2, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
+        np.testing.assert_allclose(g2, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
 
 
 @pytest.mark.parametrize("n", [7, 32, 33, 70, 100])
