@@ -454,3 +454,26 @@ def test_a_diagonal_covariance_is_factorized_as_potrf_does():
             if got:
                 np.testing.assert_array_equal(R, U2[::-1])
     assert kc._diagonal(np.diag(cases[0])) and not kc._diagonal(np.diag(cases[0]) + np.eye(30, k=-29))
+
+
+def test_finite_is_numpys_isfinite_on_every_kind_of_float():
+    """``consistency._finite`` (a count of exponent-bit tests) is ``np.isfinite(v).all()``: infinities and NaNs of
+    either sign or payload anywhere, the largest and the subnormal floats, zeros of both signs."""
+    from stereopose_mc.core.kernels.consistency import _finite
+
+    rng = np.random.default_rng(3)
+    nan_payload = np.array([0x7FF8000000000001, 0xFFF0000000000001], np.uint64).view(np.float64)  # quiet, signalling
+    special = np.concatenate([[np.inf, -np.inf, np.nan, -np.nan], nan_payload])
+    ordinary = [np.finfo(float).max, -np.finfo(float).max, 5e-324, -5e-324, np.finfo(float).tiny, 0.0, -0.0, 1.0]
+    for n in (1, 3, 30, 900, 901):
+        v = rng.standard_normal(n) * 1e200
+        assert _finite(v)
+        for x in ordinary:
+            w = v.copy()
+            w[rng.integers(n)] = x
+            assert _finite(w)
+        for x in special:
+            for i in {0, n // 2, n - 1}:
+                w = v.copy()
+                w[i] = x
+                assert not _finite(w) and not np.isfinite(w).all()

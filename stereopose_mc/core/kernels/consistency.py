@@ -567,21 +567,19 @@ def errors(x_hat: np.ndarray, x_true: np.ndarray) -> np.ndarray:
     return errors_batch(x_hat, _writable(np.broadcast_to(x_true, x_hat.shape)))
 
 
+_EXPONENT = 0x7FF0000000000000  # a float64's exponent bits: all set for +-inf and NaN only
+
+
 @njit(**_JIT)
 def _finite(v):
-    """Whether every entry of the vector ``v`` is finite: ``0 x v_i`` is 0 for a finite ``v_i`` and NaN for an
-    infinite or NaN one, summed in four independent sums (no branch, no chain of dependent additions)."""
-    z0, z1, z2, z3 = 0.0, 0.0, 0.0, 0.0
-    n = v.shape[0]
-    n4 = n - n % 4
-    for i in range(0, n4, 4):
-        z0 += v[i] * 0.0
-        z1 += v[i + 1] * 0.0
-        z2 += v[i + 2] * 0.0
-        z3 += v[i + 3] * 0.0
-    for i in range(n4, n):
-        z0 += v[i] * 0.0
-    return (z0 + z1) + (z2 + z3) == 0.0
+    """Whether every entry of the contiguous vector ``v`` is finite: none has all its exponent bits set (its bits
+    read as integers). A count of integer tests, which the compiler vectorizes without reassociating a float sum
+    (twice as fast as four float sums of ``0 x v_i`` on a 30 x 30 ``P``)."""
+    b = v.view(np.int64)
+    c = 0
+    for i in range(b.shape[0]):
+        c += (b[i] & _EXPONENT) == _EXPONENT
+    return c == 0
 
 
 @njit(**_JIT)

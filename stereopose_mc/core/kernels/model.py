@@ -107,15 +107,16 @@ def _dcm(q, D):
     """``D(q)`` of the normalized quaternion (homogeneous form, as ``quaternion.dcm``)."""
     q0, q1, q2, q3 = q[0], q[1], q[2], q[3]
     n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
-    D[0, 0] = (q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3) / n2
-    D[0, 1] = 2.0 * (q1 * q2 - q0 * q3) / n2
-    D[0, 2] = 2.0 * (q1 * q3 + q0 * q2) / n2
-    D[1, 0] = 2.0 * (q1 * q2 + q0 * q3) / n2
-    D[1, 1] = (q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3) / n2
-    D[1, 2] = 2.0 * (q2 * q3 - q0 * q1) / n2
-    D[2, 0] = 2.0 * (q1 * q3 - q0 * q2) / n2
-    D[2, 1] = 2.0 * (q2 * q3 + q0 * q1) / n2
-    D[2, 2] = (q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3) / n2
+    r = 1.0 / n2  # (products by 1 / |q|^2: one division, not nine)
+    D[0, 0] = (q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3) * r
+    D[0, 1] = 2.0 * (q1 * q2 - q0 * q3) * r
+    D[0, 2] = 2.0 * (q1 * q3 + q0 * q2) * r
+    D[1, 0] = 2.0 * (q1 * q2 + q0 * q3) * r
+    D[1, 1] = (q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3) * r
+    D[1, 2] = 2.0 * (q2 * q3 - q0 * q1) * r
+    D[2, 0] = 2.0 * (q1 * q3 - q0 * q2) * r
+    D[2, 1] = 2.0 * (q2 * q3 + q0 * q1) * r
+    D[2, 2] = (q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3) * r
     return n2
 
 
@@ -138,10 +139,11 @@ def _dcm_derivative(q, D, dD):
     dA[3, 0, 0], dA[3, 0, 1], dA[3, 0, 2] = -q3, -q0, q1
     dA[3, 1, 0], dA[3, 1, 1], dA[3, 1, 2] = q0, -q3, q2
     dA[3, 2, 0], dA[3, 2, 1], dA[3, 2, 2] = q1, q2, q3
+    s = 1.0 / n2  # (one division, not 36)
     for j in range(4):
         for r in range(3):
             for c in range(3):
-                dD[j, r, c] = (2.0 * dA[j, r, c] - 2.0 * q[j] * D[r, c]) / n2
+                dD[j, r, c] = (2.0 * dA[j, r, c] - 2.0 * q[j] * D[r, c]) * s
 
 
 @njit(**_JIT)
