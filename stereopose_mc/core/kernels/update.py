@@ -189,9 +189,9 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
 
     Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
     past ``n``, those of virtual columns, ``_with_virtual``, are read in full), added to ``g`` times
-    ``rw[r]`` while in cache (BLAS's ``gemv`` after took ~0.9 us per trial at case B's size, the call
-    more than the work); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored
-    (exactly symmetric).
+    ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after: ~0.2 us per trial less at case B's
+    size); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
+    symmetric).
     """
     m, n = Hw.shape
     for j in range(n):
@@ -499,7 +499,7 @@ def _posterior_covariance_rev(L, LA, out, W):
         for j in range(j0, j1):
             lo = n - 1 - j
             _combine(W[j], lo, n, W, LA[j], j0, j, -1.0)
-            r = 1.0 / LA[j, j]  # (a product by the reciprocal: n (n + 1) / 2 divisions were ~0.4 us per trial)
+            r = 1.0 / LA[j, j]  # (a product by the reciprocal: n (n + 1) / 2 divisions were ~0.25 us per trial)
             for i in range(lo, n):
                 W[j, i] *= r
     # out[a0:a1, :a1] = sum over the rows r of W that reach column a1 - 1 (r >= n - a1) of W[r, a0:a1]^T W[r, :a1],
