@@ -443,6 +443,47 @@ def test_dot_and_chol_solve(n):
     np.testing.assert_allclose(x, np.linalg.solve(L @ L.T, a), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("n", [0, 1, 3, 4, 7, 16, 29])
+def test_row_kernels_read_rows_in_place(n):
+    """``_dot_rows`` is ``_dot_row`` of a row taken in place (bit for bit, and ``np.dot`` to round-off);
+    ``_combine_rows`` is ``O[o, lo:hi] += sign Cf[c, k0:k1] M[k0:k1, lo:hi]`` (also with a transposed ``Cf``, as
+    ``_cholesky_small`` calls it); ``_ptr`` addresses element ``i * ld + j`` of a matrix."""
+    from numba import njit
+
+    from stereopose_mc.core.kernels import model as km2
+
+    rng = np.random.default_rng(300 + n)
+    M, V = rng.standard_normal((2, 5, n))
+    for i, j in ((0, 0), (1, 3), (4, 2)):
+        got = km2._dot_rows(M, i, V, j, 0, n)
+        assert got == km2._dot_row(M, i, V[j].copy(), 0, n)
+        assert got == pytest.approx(float(np.dot(M[i], V[j])) if n else 0.0, rel=1e-13, abs=1e-13)
+        if n > 2:
+            assert km2._dot_rows(M, i, V, j, 1, n - 1) == km2._dot_row(M, i, V[j].copy(), 1, n - 1)
+    if n == 0:
+        return
+    K = 9
+    A, Cf = rng.standard_normal((K, n)), rng.standard_normal((4, K))
+    Cf[1, 4:8] = 0.0  # a group of four zero coefficients (skipped)
+    for o, c, lo, hi, k0, k1, sign in ((0, 1, 0, n, 0, K, -1.0), (2, 3, n // 2, n, 2, 7, 1.0), (1, 0, 0, 1, 0, 0, 1.0)):
+        O = rng.standard_normal((3, n))
+        want = O.copy()
+        want[o, lo:hi] += sign * (Cf[c, k0:k1] @ A[k0:k1, lo:hi])
+        O1, O2 = O.copy(), O.copy()
+        km2._combine_rows(O1, o, lo, hi, A, Cf, c, k0, k1, sign)
+        np.testing.assert_allclose(O1, want, rtol=1e-13, atol=1e-13)
+        km2._combine_rows(O2, o, lo, hi, A, np.ascontiguousarray(Cf.T).T, c, k0, k1, sign)  # a strided Cf
+        np.testing.assert_array_equal(O2, O1)
+
+    @njit
+    def read(a, k):
+        return km2._ptr(a, k)[0]
+
+    B = rng.standard_normal((4, n))
+    for i, j in ((0, 0), (3, n - 1), (2, n // 2)):
+        assert read(B, i * n + j) == B[i, j]
+
+
 def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
     """Numba's on-disk cache: the kernels compiled here (and saved) load and run in a fresh process. (A recursive
     call between two specializations compiled fine but its cached copy did not link: a segfault on reload.)"""

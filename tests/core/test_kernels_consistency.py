@@ -310,6 +310,20 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
             assert got == want or (np.isnan(got) and np.isnan(want)), (m, trial, got, want)
 
 
+def test_small_block_mahalanobis_reads_its_block_in_place():
+    """``_mahalanobis_small(e, o, P, r, m)``: the NEES of ``e[o:o+m]`` with ``P[r:r+m, r:r+m]`` read in place, bit for
+    bit that of the block copied out (the full-state NEES's rho, rho_dot, omega, attitude and k blocks)."""
+    rng = np.random.default_rng(12)
+    for trial in range(200):
+        A = rng.standard_normal((9, 9))
+        P = A @ A.T if trial % 4 else A @ A.T - 3.0 * np.eye(9)
+        e = rng.standard_normal(9)
+        for o, r, m in ((0, 0, 3), (3, 4, 3), (6, 1, 2), (7, 7, 2)):
+            got = kc._mahalanobis_small(e, o, P, r, m)
+            want = kc._mahalanobis(e[o : o + m].copy(), P[r : r + m, r : r + m].copy(), np.zeros((m, m)), np.empty(m))
+            assert got == want or (np.isnan(got) and np.isnan(want)), (trial, o, r, m, got, want)
+
+
 @pytest.mark.parametrize("N", [1, 2, 5, 8])
 def test_gauge_columns_are_solved_like_a_triangular_solve(N):
     """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, ``L``

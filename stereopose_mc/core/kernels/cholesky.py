@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from .model import _combine, _dot_row
+from .model import _combine_rows, _dot_row
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -122,7 +122,7 @@ def _cholesky_small(A, L):
         for j in range(i, n):
             L[i, j] = A[j, i]
     for j in range(n):
-        _combine(L[j], j, n, L, L[:, j], 0, j, -1.0)
+        _combine_rows(L, j, j, n, L, L.T, j, 0, j, -1.0)  # row j -= sum_k L[k, j] L[k] (L.T[j, k] = L[k, j])
         d = L[j, j]
         if not d > 0.0:
             return False

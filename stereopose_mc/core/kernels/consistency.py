@@ -46,7 +46,7 @@ from . import attitude as _att
 from . import writable as _writable
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward
-from .model import _dot, _dot_row, _mirror_lower
+from .model import _dot, _dot_row, _dot_rows, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -62,7 +62,7 @@ def _mahalanobis(e, P, L, w):
     operations in the same order as ``_cholesky_small`` and ``_forward``: the same bits.
     """
     if P.shape[0] == 2 or P.shape[0] == 3:
-        return _mahalanobis_small(e, P)
+        return _mahalanobis_small(e, 0, P, 0, P.shape[0])
     if not _cholesky_small(P, L):
         return np.nan
     _forward(L, e, w)
@@ -83,36 +83,38 @@ def _mahalanobis_lapack(e, P, L, w):
 
 
 @njit(**_JIT)
-def _mahalanobis_small(e, P):
-    """``_mahalanobis`` of a 2 x 2 or 3 x 3 block in scalars: ``U = L^T`` row by row (``_cholesky_small``: the
-    pivot row minus the rows above, each divided by the square root of its pivot), then ``w = L^-1 e``."""
-    three = P.shape[0] == 3
-    d = P[0, 0]
+def _mahalanobis_small(e, o, P, r, m):
+    """``_mahalanobis`` of ``e[o:o+m]`` with the block ``P[r:r+m, r:r+m]`` (``m`` 2 or 3), read in place (no views:
+    each costs an atomic increment and decrement of a reference count), in scalars: ``U = L^T`` row by row
+    (``_cholesky_small``: the pivot row minus the rows above, each divided by the square root of its pivot), then
+    ``w = L^-1 e``."""
+    three = m == 3
+    d = P[r, r]
     if not d > 0.0:
         return np.nan
     d = math.sqrt(d)
-    u00, u01 = P[0, 0] / d, P[1, 0] / d
-    u02 = P[2, 0] / d if three else 0.0
-    u11 = P[1, 1] + (-u01) * u01
-    u12 = P[2, 1] + (-u01) * u02 if three else 0.0
+    u00, u01 = P[r, r] / d, P[r + 1, r] / d
+    u02 = P[r + 2, r] / d if three else 0.0
+    u11 = P[r + 1, r + 1] + (-u01) * u01
+    u12 = P[r + 2, r + 1] + (-u01) * u02 if three else 0.0
     d = u11
     if not d > 0.0:
         return np.nan
     d = math.sqrt(d)
     u11, u12 = u11 / d, u12 / d
-    w0 = e[0] / u00
-    w1 = (e[1] - u01 * w0) / u11
+    w0 = e[o] / u00
+    w1 = (e[o + 1] - u01 * w0) / u11
     s = 0.0
     s += w0 * w0
     s += w1 * w1
     if three:
-        u22 = P[2, 2] + (-u02) * u02
+        u22 = P[r + 2, r + 2] + (-u02) * u02
         u22 = u22 + (-u12) * u12
         d = u22
         if not d > 0.0:
             return np.nan
         u22 = u22 / math.sqrt(d)
-        t = e[2] - u02 * w0
+        t = e[o + 2] - u02 * w0
         t -= u12 * w1
         w2 = t / u22
         s += w2 * w2
@@ -304,10 +306,10 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
     _gauge_forward(Rc, U, N)
     for j in range(3):
         for k in range(j):
-            s = _dot_row(U, k, U[j], 12, ne)
+            s = _dot_rows(U, k, U, j, 12, ne)
             for i in range(12, ne):
                 U[j, i] -= s * U[k, i]
-        s = math.sqrt(_dot_row(U, j, U[j], 12, ne))
+        s = math.sqrt(_dot_rows(U, j, U, j, 12, ne))
         for i in range(12, ne):
             U[j, i] /= s
     for j in range(3):
@@ -389,17 +391,17 @@ def _project_off(W, j0, j1):
     first = 0.0
     for j in range(j0, j1):
         for k in range(j0, j):
-            s = _dot_row(W, k, W[j], 0, n)
+            s = _dot_rows(W, k, W, j, 0, n)
             for i in range(n):
                 W[j, i] -= s * W[k, i]
-        s = 1.0 / math.sqrt(_dot_row(W, j, W[j], 0, n))
+        s = 1.0 / math.sqrt(_dot_rows(W, j, W, j, 0, n))
         for i in range(n):
             W[j, i] *= s
-        c = _dot_row(W, j, W[0], 0, n)
+        c = _dot_rows(W, j, W, 0, 0, n)
         for i in range(n):
             W[0, i] -= c * W[j, i]
         if j == j0:
-            first = _dot_row(W, 0, W[0], 0, n)
+            first = _dot_rows(W, 0, W, 0, 0, n)
     return first
 
 
@@ -430,42 +432,41 @@ def _one_full(xh, P, Rp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
             W[j, c] = 0.0
     for j in range(4):
         W[1, 9 + j] = xh[9 + j] / nh  # t
-    for j in range(3):  # gauge column j: d P_i = e_j for every point, rho and rho_dot compensating
-        g = W[2 + j]
+    for j in range(3):  # gauge column j (W[2 + j]): d P_i = e_j for every point, rho and rho_dot compensating
         for i in range(N):
-            g[13 + 3 * i + j] = 1.0
+            W[2 + j, 13 + 3 * i + j] = 1.0
         for r in range(6):
             s = 0.0
             for i in range(N):
                 s += Tm[r, 13 + 3 * i + j]
-            g[r] = -s
+            W[2 + j, r] = -s
     _forward5(Rp, W)
     out[0] = _project_off(W, 1, 5)
-    out[1] = _dot_row(W, 0, W[0], 0, n)
+    out[1] = _dot_rows(W, 0, W, 0, 0, n)
     # --- blocks: rho, rho_dot, omega, the points and k are P's own; the attitude's is Xi_att P_qq Xi_att^T
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     q0, q1, q2, q3 = xh[9] / nh, xh[10] / nh, xh[11] / nh, xh[12] / nh
-    Xi = Lb[:3, :4]  # errorstate.attitude_map (attitude._error_map): 2 [R(q^*)]_vec
-    Xi[0, 0], Xi[0, 1], Xi[0, 2], Xi[0, 3] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
-    Xi[1, 0], Xi[1, 1], Xi[1, 2], Xi[1, 3] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
-    Xi[2, 0], Xi[2, 1], Xi[2, 2], Xi[2, 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
-    Y = C[3:6, :4]
+    # Xi = Lb[:3, :4]: errorstate.attitude_map (attitude._error_map), 2 [R(q^*)]_vec; Y = Xi P_qq in C[3:6, :4];
+    # Ca = Xi P_qq Xi^T in C[:3, :3] (indexed in place: no views, whose reference counts cost atomic operations)
+    Lb[0, 0], Lb[0, 1], Lb[0, 2], Lb[0, 3] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
+    Lb[1, 0], Lb[1, 1], Lb[1, 2], Lb[1, 3] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
+    Lb[2, 0], Lb[2, 1], Lb[2, 2], Lb[2, 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
     for a in range(3):
         for c in range(4):
-            Y[a, c] = Xi[a, 0] * P[9, 9 + c] + Xi[a, 1] * P[10, 9 + c] + Xi[a, 2] * P[11, 9 + c] + Xi[a, 3] * P[12, 9 + c]
-    Ca = C[:3, :3]
+            C[3 + a, c] = Lb[a, 0] * P[9, 9 + c] + Lb[a, 1] * P[10, 9 + c] + Lb[a, 2] * P[11, 9 + c] + \
+                Lb[a, 3] * P[12, 9 + c]  # fmt: skip
     for a in range(3):
         for b in range(a + 1):
-            s = Y[a, 0] * Xi[b, 0] + Y[a, 1] * Xi[b, 1] + Y[a, 2] * Xi[b, 2] + Y[a, 3] * Xi[b, 3]
-            Ca[a, b] = s
-            Ca[b, a] = s
+            s = C[3 + a, 0] * Lb[b, 0] + C[3 + a, 1] * Lb[b, 1] + C[3 + a, 2] * Lb[b, 2] + C[3 + a, 3] * Lb[b, 3]
+            C[a, b] = s
+            C[b, a] = s
     p1 = 12 + 3 * N
-    out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)
-    out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
-    out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
-    out[5] = _mahalanobis(eps[9:12], Ca, Lb, w)
+    out[2] = _mahalanobis_small(eps, 0, P, 0, 3)
+    out[3] = _mahalanobis_small(eps, 3, P, 3, 3)
+    out[4] = _mahalanobis_small(eps, 6, P, 6, 3)
+    out[5] = _mahalanobis_small(eps, 9, C, 0, 3)
     out[6] = _mahalanobis_lapack(eps[12:p1], P[13 : p1 + 1, 13 : p1 + 1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
-    out[7] = _mahalanobis(eps[p1:ne], P[p1 + 1 : n, p1 + 1 : n], Lb[: ne - p1, : ne - p1], w[: ne - p1])
+    out[7] = _mahalanobis_small(eps, p1, P, p1 + 1, ne - p1)  # (k: 2 x 2)
 
 
 @njit(**_JIT)
@@ -502,9 +503,9 @@ def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
                     g2 += v
         W[0, r], W[1, r], W[2, r], W[3, r], W[4, r] = s, g0, g1, g2, 0.0
     _forward5(Rp, W)
-    out[0] = _dot_row(W, 0, W[0], 0, ne)
+    out[0] = _dot_rows(W, 0, W, 0, 0, ne)
     _project_off(W, 1, 4)
-    out[1] = _dot_row(W, 0, W[0], 0, ne)
+    out[1] = _dot_rows(W, 0, W, 0, 0, ne)
     # --- blocks: P's own (rho, rho_dot, omega, attitude, the points, k)
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)

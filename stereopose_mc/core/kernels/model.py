@@ -26,7 +26,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 N_SHARED = 13  # rho, rho_dot, omega, q
 NNZ = 16  # non-zero columns of one measurement row
@@ -44,26 +45,44 @@ def _mirror_lower(A):
 
 
 @njit(**_JIT)
-def _combine(out, lo, hi, M, coef, k0, k1, sign):
-    """``out[lo:hi] += sign * sum_{k0 <= k < k1} coef[k] M[k, lo:hi]``, four rows of ``M`` per pass.
+def _combine_rows(O, o, lo, hi, M, Cf, c, k0, k1, sign):
+    """``O[o, lo:hi] += sign * sum_{k0 <= k < k1} Cf[c, k] M[k, lo:hi]``, four rows of ``M`` per pass.
 
-    The row operation of the factorizations, triangular solves and ``X^T X`` products below:
-    contiguous (vectorizable without reassociating a sum), and ``out`` is read and written a
-    quarter as often as with one axpy per row; a group of four zero coefficients is skipped.
+    The row operation of the factorizations and triangular solves: contiguous (vectorizable
+    without reassociating a sum), and the row ``O[o]`` is read and written a quarter as often as
+    with one axpy per row; a group of four zero coefficients is skipped. The rows are indexed in
+    place, not passed as views (``O[o]``, ``Cf[c]``): each array view a compiled function makes
+    costs an atomic increment and decrement of its reference count, which between the stores of
+    a solve's rows cost more than their arithmetic.
     """
     k = k0
     while k + 4 <= k1:
-        a0, a1, a2, a3 = sign * coef[k], sign * coef[k + 1], sign * coef[k + 2], sign * coef[k + 3]
+        a0, a1, a2, a3 = sign * Cf[c, k], sign * Cf[c, k + 1], sign * Cf[c, k + 2], sign * Cf[c, k + 3]
         if a0 != 0.0 or a1 != 0.0 or a2 != 0.0 or a3 != 0.0:
-            for c in range(lo, hi):
-                out[c] += (a0 * M[k, c] + a1 * M[k + 1, c]) + (a2 * M[k + 2, c] + a3 * M[k + 3, c])
+            for j in range(lo, hi):
+                O[o, j] += (a0 * M[k, j] + a1 * M[k + 1, j]) + (a2 * M[k + 2, j] + a3 * M[k + 3, j])
         k += 4
     while k < k1:
-        a = sign * coef[k]
+        a = sign * Cf[c, k]
         if a != 0.0:
-            for c in range(lo, hi):
-                out[c] += a * M[k, c]
+            for j in range(lo, hi):
+                O[o, j] += a * M[k, j]
         k += 1
+
+
+@intrinsic
+def _ptr(typingctx, a, k):
+    """The address of element ``k`` of the C-contiguous array ``a`` in flat order (``i * ld + j`` of a matrix),
+    for BLAS and LAPACK calls on sub-matrices: not ``a[i, j:].ctypes``, a view whose reference count costs two
+    atomic operations per call."""
+    sig = types.CPointer(a.dtype)(a, k)
+
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        off = context.cast(builder, args[1], signature.args[1], types.intp)
+        return builder.gep(ary.data, [off])
+
+    return sig, codegen
 
 
 @njit(**_JIT)
@@ -89,6 +108,27 @@ def _dot_row(M, i, b, lo, hi):
         k += 4
     while k < hi:
         s0 += M[i, k] * b[k]
+        k += 1
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(**_JIT)
+def _dot_rows(M, i, V, j, lo, hi):
+    """``_dot_row`` of two rows, ``sum_{lo <= k < hi} M[i, k] V[j, k]`` (the same sums in the same order), read in
+    place: a row view (``V[j]``) costs an atomic increment and decrement of its reference count."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    k = lo
+    while k + 4 <= hi:
+        s0 += M[i, k] * V[j, k]
+        s1 += M[i, k + 1] * V[j, k + 1]
+        s2 += M[i, k + 2] * V[j, k + 2]
+        s3 += M[i, k + 3] * V[j, k + 3]
+        k += 4
+    while k < hi:
+        s0 += M[i, k] * V[j, k]
         k += 1
     return (s0 + s1) + (s2 + s3)
 
@@ -475,12 +515,15 @@ def predict_covariance_batch(P, T, Q):
             for l in range(15):
                 t = T[b, i, l]
                 if t != 0.0:
-                    Pl = P[b, cols[l]]
+                    cl = cols[l]  # (P's row read in place: as a view P[b, cols[l]], its reference count's atomic
+                    # increment and decrement between these stores cost 0.75 us per trial, a third of the kernel)
                     for j in range(n):
-                        TP[i, j] += t * Pl[j]
+                        TP[i, j] += t * P[b, cl, j]
             for l in range(15):
                 Tt[l, i] = T[b, i, l]
-        out[b, :, :] = P[b]
+        for i in range(n):
+            for j in range(n):
+                out[b, i, j] = P[b, i, j]
         # rows/cols 0..12 against the rest: (T P)[a, r]; against themselves: (T P)[a, c] T^T
         for i in range(13):
             for j in range(13, n):
@@ -510,84 +553,96 @@ def predict_covariance_batch(P, T, Q):
 # --- measurement model ----------------------------------------------------------
 
 
-_MEASURE_SCRATCH = 78  # _feature_rows' r, J, K0 (3 + 54 + 21); _pseudo_rows' W, a, wT, g, G, dg/dk (27)
+_MEASURE_SCRATCH = 84  # _feature_rows' J, K0 (a 12 x 7 matrix); _pseudo_rows' W, a, wT, g, G, dg/dk (27)
 
 
 @njit(**_JIT)
-def _feature_rows(x, i, baseline, disparity, focal, D, dD, w, compute_jac, hrow, Hval, ws):
-    """``h`` (``hrow (C,)``) and the 16 non-zero Jacobian columns (``Hval (C, 16)``) of feature ``i``.
+def _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hval, ws):
+    """``h`` and the 16 non-zero Jacobian columns of every visible feature: those of feature ``vis[f]`` in the rows
+    ``f C .. f C + C - 1`` of ``hx`` and ``Hval`` (``C`` channels).
 
     Columns 0-12 are ``rho, rho_dot, omega, q``, 13-15 the point ``P_i`` (``jacobians.H_features_compact``).
-    ``ws``: scratch of ``_MEASURE_SCRATCH`` floats (no allocation per feature).
+    ``ws``: a 12 x 7 scratch matrix (no allocation per feature): ``J (9 x 6)`` in its top left, ``K0 (3 x 7)`` in
+    its last rows. The rows, the point, ``r`` and ``w`` are indexed in place or held as scalars, not as array
+    views: a view costs an atomic increment and decrement of its reference count, which between the stores
+    of these rows cost more than their arithmetic (measured: 0.75 us per trial in the covariance predict's
+    loop of the same kind). The features are looped over here, not by the caller: each array a compiled
+    function takes costs the same two operations per call, ~12 per feature.
     """
-    p0 = 13 + 3 * i
-    P = x[p0 : p0 + 3]
-    r = ws[0:3]
-    for a in range(3):
-        r[a] = D[a, 0] * P[0] + D[a, 1] * P[1] + D[a, 2] * P[2]
-    X, Y, Z = x[0] + r[0], x[1] + r[1], x[2] + r[2]
-    vX = x[3] + (w[1] * r[2] - w[2] * r[1])
-    vY = x[4] + (w[2] * r[0] - w[0] * r[2])
-    vZ = x[5] + (w[0] * r[1] - w[1] * r[0])
-    iy = 1.0 / Y
-    xl = X - baseline
-    u_r, v_r, u_l = X * iy, Z * iy, xl * iy
-    hrow[0] = u_r * focal
-    hrow[1] = v_r * focal
-    hrow[2] = u_l * focal
-    hrow[3] = v_r * focal
-    hrow[4] = (vX * Y - X * vY) * iy * iy * focal
-    hrow[5] = (vZ * Y - Z * vY) * iy * iy * focal
-    hrow[6] = (vX * Y - xl * vY) * iy * iy * focal
-    hrow[7] = hrow[5]
     C = 9 if disparity else 8
-    if disparity:
-        hrow[8] = (u_l - u_r) * focal
-    if not compute_jac:
-        return
-    iy2 = iy * iy
-    J = ws[3:57].reshape((9, 6))  # [dh/d rho_i | dh/d rho_dot_i] (jacobians._projection_gradients)
-    J[:, :] = 0.0
-    J[0, 0] = J[2, 0] = iy
-    J[0, 1] = -X * iy2
-    J[2, 1] = -xl * iy2
-    J[1, 1] = J[3, 1] = -Z * iy2
-    J[1, 2] = J[3, 2] = iy
-    for a in range(4):
-        for c in range(3):
-            J[4 + a, 3 + c] = J[a, c]
-    vyy = 2.0 * vY * iy2 * iy
-    vy2 = -vY * iy2
-    J[4, 0] = J[6, 0] = vy2
-    J[4, 1] = -vX * iy2 + X * vyy
-    J[6, 1] = -vX * iy2 + xl * vyy
-    J[5, 1] = J[7, 1] = -vZ * iy2 + Z * vyy
-    J[5, 2] = J[7, 2] = vy2
-    if disparity:
-        J[8, 1] = baseline * iy2
-    # K0 = [dr/dq_j (4 cols) | D (3 cols)] (3 x 7)
-    K0 = ws[57:78].reshape((3, 7))
-    for j in range(4):
+    for f in range(vis.shape[0]):
+        i = vis[f]
+        o = f * C
+        p0 = 13 + 3 * i
+        P0, P1, P2 = x[p0], x[p0 + 1], x[p0 + 2]
+        w0, w1, w2 = x[6], x[7], x[8]
+        r0 = D[0, 0] * P0 + D[0, 1] * P1 + D[0, 2] * P2
+        r1 = D[1, 0] * P0 + D[1, 1] * P1 + D[1, 2] * P2
+        r2 = D[2, 0] * P0 + D[2, 1] * P1 + D[2, 2] * P2
+        X, Y, Z = x[0] + r0, x[1] + r1, x[2] + r2
+        vX = x[3] + (w1 * r2 - w2 * r1)
+        vY = x[4] + (w2 * r0 - w0 * r2)
+        vZ = x[5] + (w0 * r1 - w1 * r0)
+        iy = 1.0 / Y
+        xl = X - baseline
+        u_r, v_r, u_l = X * iy, Z * iy, xl * iy
+        hx[o] = u_r * focal
+        hx[o + 1] = v_r * focal
+        hx[o + 2] = u_l * focal
+        hx[o + 3] = v_r * focal
+        hx[o + 4] = (vX * Y - X * vY) * iy * iy * focal
+        hx[o + 5] = (vZ * Y - Z * vY) * iy * iy * focal
+        hx[o + 6] = (vX * Y - xl * vY) * iy * iy * focal
+        hx[o + 7] = hx[o + 5]
+        if disparity:
+            hx[o + 8] = (u_l - u_r) * focal
+        if not compute_jac:
+            continue
+        iy2 = iy * iy
+        # J = ws[:9, :6] = [dh/d rho_i | dh/d rho_dot_i] (jacobians._projection_gradients)
+        for c in range(9):
+            for j in range(6):
+                ws[c, j] = 0.0
+        ws[0, 0] = ws[2, 0] = iy
+        ws[0, 1] = -X * iy2
+        ws[2, 1] = -xl * iy2
+        ws[1, 1] = ws[3, 1] = -Z * iy2
+        ws[1, 2] = ws[3, 2] = iy
+        for a in range(4):
+            for c in range(3):
+                ws[4 + a, 3 + c] = ws[a, c]
+        vyy = 2.0 * vY * iy2 * iy
+        vy2 = -vY * iy2
+        ws[4, 0] = ws[6, 0] = vy2
+        ws[4, 1] = -vX * iy2 + X * vyy
+        ws[6, 1] = -vX * iy2 + xl * vyy
+        ws[5, 1] = ws[7, 1] = -vZ * iy2 + Z * vyy
+        ws[5, 2] = ws[7, 2] = vy2
+        if disparity:
+            ws[8, 1] = baseline * iy2
+        # K0 = ws[9:12] = [dr/dq_j (4 cols) | D (3 cols)] (3 x 7)
+        for j in range(4):
+            for a in range(3):
+                ws[9 + a, j] = dD[j, a, 0] * P0 + dD[j, a, 1] * P1 + dD[j, a, 2] * P2
         for a in range(3):
-            K0[a, j] = dD[j, a, 0] * P[0] + dD[j, a, 1] * P[1] + dD[j, a, 2] * P[2]
-    for a in range(3):
-        for c in range(3):
-            K0[a, 4 + c] = D[a, c]
-    for c in range(C):
-        jp0, jp1, jp2 = J[c, 0], J[c, 1], J[c, 2]
-        jv0, jv1, jv2 = J[c, 3], J[c, 4], J[c, 5]
-        Hval[c, 0], Hval[c, 1], Hval[c, 2] = jp0 * focal, jp1 * focal, jp2 * focal
-        Hval[c, 3], Hval[c, 4], Hval[c, 5] = jv0 * focal, jv1 * focal, jv2 * focal
-        # d/dw = -Jv [r x] = r x Jv
-        Hval[c, 6] = (r[1] * jv2 - r[2] * jv1) * focal
-        Hval[c, 7] = (r[2] * jv0 - r[0] * jv2) * focal
-        Hval[c, 8] = (r[0] * jv1 - r[1] * jv0) * focal
-        # d/d[q, P_i] = (Jp + Jv [w x]) K0 = (Jp + Jv x w) K0
-        e0 = jp0 + (jv1 * w[2] - jv2 * w[1])
-        e1 = jp1 + (jv2 * w[0] - jv0 * w[2])
-        e2 = jp2 + (jv0 * w[1] - jv1 * w[0])
-        for j in range(7):
-            Hval[c, 9 + j] = (e0 * K0[0, j] + e1 * K0[1, j] + e2 * K0[2, j]) * focal
+            for c in range(3):
+                ws[9 + a, 4 + c] = D[a, c]
+        for c in range(C):
+            jp0, jp1, jp2 = ws[c, 0], ws[c, 1], ws[c, 2]
+            jv0, jv1, jv2 = ws[c, 3], ws[c, 4], ws[c, 5]
+            rr = o + c
+            Hval[rr, 0], Hval[rr, 1], Hval[rr, 2] = jp0 * focal, jp1 * focal, jp2 * focal
+            Hval[rr, 3], Hval[rr, 4], Hval[rr, 5] = jv0 * focal, jv1 * focal, jv2 * focal
+            # d/dw = -Jv [r x] = r x Jv
+            Hval[rr, 6] = (r1 * jv2 - r2 * jv1) * focal
+            Hval[rr, 7] = (r2 * jv0 - r0 * jv2) * focal
+            Hval[rr, 8] = (r0 * jv1 - r1 * jv0) * focal
+            # d/d[q, P_i] = (Jp + Jv [w x]) K0 = (Jp + Jv x w) K0
+            e0 = jp0 + (jv1 * w2 - jv2 * w1)
+            e1 = jp1 + (jv2 * w0 - jv0 * w2)
+            e2 = jp2 + (jv0 * w1 - jv1 * w0)
+            for j in range(7):
+                Hval[rr, 9 + j] = (e0 * ws[9, j] + e1 * ws[10, j] + e2 * ws[11, j]) * focal
 
 
 @njit(**_JIT)
@@ -671,14 +726,12 @@ def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, com
     """``h`` and row-sparse ``H`` of one trial (``relnav.measurement_model``)."""
     C = 9 if disparity else 8
     _dcm_derivative(x[9:13], D, dD)
-    w = x[6:9]
     nv = vis.shape[0]
-    ws = np.empty(_MEASURE_SCRATCH)  # the rows' scratch: one allocation per call, not per feature
-    for f in range(nv):
-        _feature_rows(x, vis[f], baseline, disparity, focal, D, dD, w, compute_jac,
-                      hx[f * C : (f + 1) * C], Hval[f * C : (f + 1) * C], ws)  # fmt: skip
+    ws = np.empty((12, 7))  # the rows' scratch: one allocation per call, not per feature
+    _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hval, ws)
     if pseudo:
-        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3], ws)
+        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3],
+                     ws.ravel())  # fmt: skip
 
 
 @njit(**_JIT)

@@ -57,7 +57,7 @@ from . import attitude as _att
 from .aligned import _chart, _measure_aligned, virtual_rows
 from .cholesky import _KIND_D, _UPLO_U, _cholesky, _cholesky_t, _forward, _potrf
 from .consistency import _nees_one, _nees_scratch
-from .model import NNZ, _combine, _dot, _dot_row, _measure_one, _mirror_lower
+from .model import NNZ, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -494,11 +494,11 @@ def _posterior_covariance_rev(L, LA, out, W):
         for k0 in range(0, j0, nb):
             k1 = min(k0 + nb, j0)
             c = n - k1
-            _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, k1, j1 - j0, k1 - k0, ab[0:1].ctypes, W[k0, c:].ctypes, n,
-                    LA[j0, k0:].ctypes, n, ab[1:2].ctypes, W[j0, c:].ctypes, n)  # fmt: skip
+            _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, k1, j1 - j0, k1 - k0, _ptr(ab, 0), _ptr(W, k0 * n + c), n,
+                    _ptr(LA, j0 * n + k0), n, _ptr(ab, 1), _ptr(W, j0 * n + c), n)  # fmt: skip
         for j in range(j0, j1):
             lo = n - 1 - j
-            _combine(W[j], lo, n, W, LA[j], j0, j, -1.0)
+            _combine_rows(W, j, lo, n, W, LA, j, j0, j, -1.0)
             r = 1.0 / LA[j, j]  # (a product by the reciprocal: n (n + 1) / 2 divisions were ~0.25 us per trial)
             for i in range(lo, n):
                 W[j, i] *= r
@@ -513,8 +513,8 @@ def _posterior_covariance_rev(L, LA, out, W):
         while r1 > n - a1:
             r0 = max(r1 - nb, n - a1)
             c = n - r1
-            _xxgemm(_KIND_D, _NOTRANS, _TRANS, a1 - c, a1 - a0, r1 - r0, ab[1:2].ctypes, W[r0, c:].ctypes, n,
-                    W[r0, a0:].ctypes, n, ab[1:2].ctypes, out[a0, c:].ctypes, n)  # fmt: skip
+            _xxgemm(_KIND_D, _NOTRANS, _TRANS, a1 - c, a1 - a0, r1 - r0, _ptr(ab, 1), _ptr(W, r0 * n + c), n,
+                    _ptr(W, r0 * n + a0), n, _ptr(ab, 1), _ptr(out, a0 * n + c), n)  # fmt: skip
             r1 = r0
     _mirror_lower(out)
 
