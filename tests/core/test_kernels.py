@@ -365,6 +365,43 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
         np.testing.assert_allclose(g2, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
 
 
+@pytest.mark.parametrize("virtual", [False, True])
+def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
+    """``_whiten`` forms two consecutive rows that see the same columns in one pass: each row equals, bit for bit,
+    the row whitened alone, also where one row of a pair has a group of four zero values (which a row alone skips)
+    or a whole masked feature; ``Hw``, ``A`` and ``g`` equal the dense product's to round-off."""
+    from stereopose_mc.core.kernels import update as ku
+
+    rng = np.random.default_rng(23 + virtual)
+    n, cols, Hval = _staircase_rows(rng, 5, virtual, masked=(2,))
+    order = np.lexsort(cols.T[::-1])  # a feature's rows next to each other, as the model gives them
+    cols, Hval = np.ascontiguousarray(cols[order]), np.ascontiguousarray(Hval[order])
+    Hval[3, 4:8] = 0.0  # a zero group in one row of a pair
+    Hval[10, 0:4] = 0.0
+    m = cols.shape[0]
+    X = rng.standard_normal((n, n))
+    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
+    Laug = np.vstack([L, rng.standard_normal((3, n))]) if virtual else L
+    y, hx = rng.standard_normal((2, m))
+    rws = 1.0 / rng.uniform(0.5, 2.0, m)
+    Hw, rw, A, g = np.empty((m, n)), np.empty(m), np.empty((n, n)), np.empty(n)
+    ku._whiten(hx, Hval, cols, y, rws, Laug, Hw, rw, A, g)
+    pairs = sum(np.array_equal(cols[r], cols[r + 1]) for r in range(m - 1))
+    assert pairs > m // 2  # the paired path is exercised
+    for r in range(m):  # each row alone
+        H1, rw1, A1, g1 = np.empty((1, n)), np.empty(1), np.empty((n, n)), np.empty(n)
+        ku._whiten(hx[r : r + 1], Hval[r : r + 1], cols[r : r + 1], y[r : r + 1], rws[r : r + 1], Laug, H1, rw1, A1, g1)
+        assert np.array_equal(H1[0], Hw[r]), r
+    Hd = np.zeros((m, Laug.shape[0]))
+    for r in range(m):
+        np.add.at(Hd[r], cols[r], Hval[r])
+    Hw_ref = (rws[:, None] * Hd) @ Laug
+    np.testing.assert_allclose(Hw, Hw_ref, rtol=0, atol=1e-13 * np.abs(Hw_ref).max())
+    np.testing.assert_allclose(A, np.eye(n) + Hw_ref.T @ Hw_ref, rtol=0, atol=1e-13 * np.abs(A).max())
+    np.testing.assert_allclose(g, Hw_ref.T @ (rws * (y - hx)), rtol=0, atol=1e-13 * np.abs(g).max())
+    assert np.array_equal(A, A.T)
+
+
 @pytest.mark.parametrize("n", [7, 32, 33, 70, 100])
 def test_gram_lower_blocked(n):
     """The lower triangle of ``M^T M`` (blocked past 32 columns) equals numpy's product."""

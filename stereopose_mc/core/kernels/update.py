@@ -191,25 +191,50 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
     past ``n``, those of virtual columns, ``_with_virtual``, are read in full), added to ``g`` times
     ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after: ~0.2 us per trial less at case B's
     size); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
-    symmetric).
+    symmetric). Two consecutive rows that see the same columns (a feature's) are formed in one
+    pass, each entry of ``L`` read once for both: 3.62 -> 3.24 us per call at case B's size (the
+    same numbers: a row's group of four columns whose values are all zero, which a row alone
+    skips, adds exact zeros to it, ``L`` being finite).
     """
     m, n = Hw.shape
     for j in range(n):
         g[j] = 0.0
-    for r in range(m):
-        rw[r] = (yb[r] - hx[r]) * rws[r]
-        for j in range(n):
-            Hw[r, j] = 0.0
+    r = 0
+    while r < m:
+        # two rows at once where they see the same columns (a feature's rows): each row of L read once for both
+        two = r + 1 < m
+        if two:
+            for k in range(NNZ):
+                if cols[r, k] != cols[r + 1, k]:
+                    two = False
+                    break
+        for q in range(r, r + 2 if two else r + 1):
+            rw[q] = (yb[q] - hx[q]) * rws[q]
+            for j in range(n):
+                Hw[q, j] = 0.0
+        u = r + 1 if two else r
+        s, t = rws[r], rws[u]
         for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
-            s = rws[r]
             h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
-            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
+            e0, e1, e2, e3 = Hval[u, k] * t, Hval[u, k + 1] * t, Hval[u, k + 2] * t, Hval[u, k + 3] * t
+            hr = h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0
+            hu = two and (e0 != 0.0 or e1 != 0.0 or e2 != 0.0 or e3 != 0.0)
+            if hr or hu:
                 c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
-                for j in range(min(max(max(c0, c1), max(c2, c3)) + 1, n)):
-                    Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
-        c = rw[r]
-        for j in range(n):
-            g[j] += c * Hw[r, j]
+                top = min(max(max(c0, c1), max(c2, c3)) + 1, n)
+                if hu:
+                    for j in range(top):
+                        l0, l1, l2, l3 = L[c0, j], L[c1, j], L[c2, j], L[c3, j]
+                        Hw[r, j] += (h0 * l0 + h1 * l1) + (h2 * l2 + h3 * l3)
+                        Hw[u, j] += (e0 * l0 + e1 * l1) + (e2 * l2 + e3 * l3)
+                else:
+                    for j in range(top):
+                        Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
+        for q in range(r, u + 1):
+            c = rw[q]
+            for j in range(n):
+                g[j] += c * Hw[q, j]
+        r = u + 1
     _gram_lower(Hw, A)
     for i in range(n):
         A[i, i] += 1.0
