@@ -310,6 +310,31 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
             assert got == want or (np.isnan(got) and np.isnan(want)), (m, trial, got, want)
 
 
+@pytest.mark.parametrize("m", [1, 4, 15, 24, 25, 60])
+def test_points_block_mahalanobis(m):
+    """``_mahalanobis_lapack`` (the points' block: written out by rows of ``U`` up to ``ROWS_MAX`` rows, ``potrf``
+    past it) is ``e^T P^-1 e`` (numpy's solve, to round-off), NaN where ``P`` is not positive definite or not
+    finite; ``_upper_rows`` gives numpy's Cholesky factor, transposed."""
+    rng = np.random.default_rng(40 + m)
+    for trial in range(20):
+        A = rng.standard_normal((m, 2 * m)) * np.logspace(-3, 3, m)[:, None]
+        P = A @ A.T / m + 1e-6 * np.eye(m)
+        e = rng.standard_normal(m)
+        got = kc._mahalanobis_lapack(e, P, np.empty((m, m)), np.empty(m))
+        want = float(e @ np.linalg.solve(P, e))
+        assert got == pytest.approx(want, rel=1e-8), (m, trial)
+        if m <= kc.ROWS_MAX:
+            U = np.full((m, m), np.nan)
+            assert kc._upper_rows(P, U)
+            np.testing.assert_allclose(U.T, np.linalg.cholesky(P), rtol=0, atol=1e-12 * np.sqrt(np.abs(P).max()))
+            assert np.array_equal(np.tril(U, -1), np.zeros((m, m)))
+    bad = P - 2.0 * np.abs(np.linalg.eigvalsh(P)).max() * np.eye(m)
+    assert np.isnan(kc._mahalanobis_lapack(e, bad, np.empty((m, m)), np.empty(m)))
+    nan = P.copy()
+    nan[m // 2, m // 2] = np.nan
+    assert np.isnan(kc._mahalanobis_lapack(e, nan, np.empty((m, m)), np.empty(m)))
+
+
 def test_small_block_mahalanobis_reads_its_block_in_place():
     """``_mahalanobis_small(e, o, P, r, m)``: the NEES of ``e[o:o+m]`` with ``P[r:r+m, r:r+m]`` read in place, bit for
     bit that of the block copied out (the full-state NEES's rho, rho_dot, omega, attitude and k blocks)."""
