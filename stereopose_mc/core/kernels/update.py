@@ -250,7 +250,7 @@ def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper=True):
     if Hw.shape[1] <= LARGE_N:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
         _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, upper)
     else:
-        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi)
+        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper)
 
 
 @njit(**_JIT)
@@ -266,7 +266,7 @@ def _own(h, c, n, Bv, r):
 
 
 @njit(**_JIT)
-def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
+def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper=True):
     """``_whiten`` and ``g = Hw^T rw`` for a large ``n``, skipping the exact zeros of ``Hw = R^-1/2 H L``.
 
     A row of ``H`` whose last non-zero column is ``c`` gives a row of ``Hw`` that is zero past
@@ -285,7 +285,7 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
     ``Hs[r0:, i0:i1]^T Hs[r0:, :i1]`` over the rows ``r0:`` that reach column ``i0`` (one BLAS
     ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
     ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. ``A`` is exactly
-    symmetric (lower triangle mirrored).
+    symmetric (lower triangle mirrored; with ``upper`` False the lower triangle only, as ``_whiten``).
 
     The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
     columns (every point, for the centroid) are therefore not split here but whitened in the
@@ -405,7 +405,8 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
                 A.ctypes, n)  # fmt: skip
     for i in range(n):
         A[i, i] += 1.0
-    _mirror_lower(A)
+    if upper:  # (as in _whiten)
+        _mirror_lower(A)
 
 
 @njit(**_JIT)
@@ -862,7 +863,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _masked(hx, Hval, yb, mk)
         if cen:
             _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         else:
             _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         for r in range(m):
@@ -1000,7 +1001,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _masked(hx, Hval, yb, mk)
             if cen:
                 _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
             else:
                 _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         if failed or not (fresh or _factor(Afin, LA)):
