@@ -404,7 +404,7 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
 
 @pytest.mark.parametrize("n", [1, 2, 7, 30, 32, 33, 70, 100])
 def test_gram_lower_blocked(n):
-    """The lower triangle of ``M^T M`` (two strips up to 32 columns, blocked past them) equals numpy's product."""
+    """The lower triangle of ``M^T M`` (blocked past 32 columns) equals numpy's product."""
     from stereopose_mc.core.kernels import update as ku
 
     M = np.random.default_rng(n).standard_normal((2 * n + 3, n))

@@ -184,15 +184,14 @@ def _normalize_q(x):
 
 
 @njit(**_JIT)
-def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, upper=True):
+def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
     """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``g = Hw^T rw``, ``A = I + Hw^T Hw`` (full, symmetric).
 
     Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
     past ``n``, those of virtual columns, ``_with_virtual``, are read in full), added to ``g`` times
     ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after: ~0.2 us per trial less at case B's
     size); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
-    symmetric; ``upper`` False: not mirrored, for a caller that reads the lower triangle only, as one plain
-    Gauss-Newton step, the EKF, does). Two consecutive rows that see the same columns (a feature's) are formed in one
+    symmetric). Two consecutive rows that see the same columns (a feature's) are formed in one
     pass, each entry of ``L`` read once for both: 3.62 -> 3.24 us per call at case B's size (the
     same numbers: a row's group of four columns whose values are all zero, which a row alone
     skips, adds exact zeros to it, ``L`` being finite).
@@ -239,18 +238,17 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, upper=True):
     _gram_lower(Hw, A)
     for i in range(n):
         A[i, i] += 1.0
-    if upper:  # (a plain EKF step reads the lower triangle only: _factor)
-        _mirror_lower(A)
+    _mirror_lower(A)
 
 
 @njit(**_JIT)
-def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper=True):
+def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi):
     """``_whiten`` and ``g = Hw^T rw``; past ``LARGE_N`` columns by ``_whiten_staircase`` (the same numbers to
     round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch)."""
     if Hw.shape[1] <= LARGE_N:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
-        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, upper)
+        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g)
     else:
-        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper)
+        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi)
 
 
 @njit(**_JIT)
@@ -266,7 +264,7 @@ def _own(h, c, n, Bv, r):
 
 
 @njit(**_JIT)
-def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper=True):
+def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
     """``_whiten`` and ``g = Hw^T rw`` for a large ``n``, skipping the exact zeros of ``Hw = R^-1/2 H L``.
 
     A row of ``H`` whose last non-zero column is ``c`` gives a row of ``Hw`` that is zero past
@@ -285,7 +283,7 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper=Tr
     ``Hs[r0:, i0:i1]^T Hs[r0:, :i1]`` over the rows ``r0:`` that reach column ``i0`` (one BLAS
     ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
     ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. ``A`` is exactly
-    symmetric (lower triangle mirrored; with ``upper`` False the lower triangle only, as ``_whiten``).
+    symmetric (lower triangle mirrored).
 
     The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
     columns (every point, for the centroid) are therefore not split here but whitened in the
@@ -405,27 +403,17 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper=Tr
                 A.ctypes, n)  # fmt: skip
     for i in range(n):
         A[i, i] += 1.0
-    if upper:  # (as in _whiten)
-        _mirror_lower(A)
+    _mirror_lower(A)
 
 
 @njit(**_JIT)
 def _gram_lower(M, G):
-    """The lower triangle of ``G = M^T M`` (``M (m, n)``) by BLAS: up to ``SOLVE_BLOCK`` columns two strips of rows
-    of ``G``, each up to its last column (3/4 of the full product's flops: 1.05 -> 0.98 us at case B's 43 x 30, the
-    same numbers), else the blocks on and below the diagonal only (about half the flops of the full product). The
-    upper triangle is left as it is (``_whiten`` mirrors the lower one onto it)."""
+    """The lower triangle of ``G = M^T M`` (``M (m, n)``) by BLAS: one product up to ``SOLVE_BLOCK`` columns,
+    else the blocks on and below the diagonal only (about half the flops of the full product)."""
     m, n = M.shape
     nb = SOLVE_BLOCK
     if n <= nb:
-        # two strips of rows of G, each up to its last column (column-major: G^T[:i1, i0:i1] = M[:, :i1]^T M[:, i0:i1])
-        h = (n + 1) // 2
-        ab = np.empty(2)
-        ab[0], ab[1] = 1.0, 0.0
-        for i0, i1 in ((0, h), (h, n)):
-            if i1 > i0:
-                _xxgemm(_KIND_D, _NOTRANS, _TRANS, i1, i1 - i0, m, _ptr(ab, 0), _ptr(M, 0), n, _ptr(M, i0), n,
-                        _ptr(ab, 1), _ptr(G, i0 * n), n)  # fmt: skip
+        np.dot(M.T, M, G)
         return
     MT = np.ascontiguousarray(M.T)
     tmp = np.empty((nb, nb))
@@ -801,7 +789,6 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
     big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n layout)
-    upper = not (max_iter == 1 and control == 0 and tol <= 0.0)  # A's upper triangle read (not by one plain step)
     cen = chart == 1 and n > LARGE_N  # whitened in the centered point coordinates (above)
     Np = (n - 14) // 3
     g2 = np.empty(n)  # _sqrt_mul's scratch
@@ -863,9 +850,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _masked(hx, Hval, yb, mk)
         if cen:
             _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
         else:
-            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -1001,9 +988,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _masked(hx, Hval, yb, mk)
             if cen:
                 _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
             else:
-                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
         if failed or not (fresh or _factor(Afin, LA)):
             ok[b] = False
             continue
