@@ -327,6 +327,24 @@ def _staircase_rows(rng, N, virtual, masked):
     return n, cols, Hval
 
 
+def _whitening_inputs(rng, n, m, virtual):
+    """A Cholesky factor ``L`` of a random SPD matrix (with 3 random rows appended for the virtual columns), ``y``,
+    ``h`` and ``R^-1/2`` for ``m`` rows: the inputs of the whitening kernels."""
+    X = rng.standard_normal((n, n))
+    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
+    Laug = np.vstack([L, rng.standard_normal((3, n))]) if virtual else L
+    y, hx = rng.standard_normal((2, m))
+    return Laug, y, hx, 1.0 / rng.uniform(0.5, 2.0, m)
+
+
+def _dense_whitened(cols, Hval, rws, Laug):
+    """The dense ``Hw = R^-1/2 H L_aug`` of the row-sparse ``H`` (numpy)."""
+    Hd = np.zeros((cols.shape[0], Laug.shape[0]))
+    for r in range(cols.shape[0]):
+        np.add.at(Hd[r], cols[r], Hval[r])
+    return (rws[:, None] * Hd) @ Laug
+
+
 @pytest.mark.parametrize("N,virtual,masked", [(7, True, ()), (7, False, ()), (20, True, (3,)), (40, True, (0, 39)),
                                               (40, False, (5,))])  # fmt: skip
 def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
@@ -338,15 +356,8 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     rng = np.random.default_rng(N + 7 * len(masked))
     n, cols, Hval = _staircase_rows(rng, N, virtual, masked)
     m = cols.shape[0]
-    X = rng.standard_normal((n, n))
-    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
-    Laug = np.vstack([L, rng.standard_normal((3, n))]) if virtual else L
-    y, hx = rng.standard_normal((2, m))
-    rws = 1.0 / rng.uniform(0.5, 2.0, m)
-    Hd = np.zeros((m, Laug.shape[0]))
-    for r in range(m):
-        np.add.at(Hd[r], cols[r], Hval[r])
-    Hw = (rws[:, None] * Hd) @ Laug
+    Laug, y, hx, rws = _whitening_inputs(rng, n, m, virtual)
+    Hw = _dense_whitened(cols, Hval, rws, Laug)
     rw_ref = rws * (y - hx)
     A_ref, g_ref = np.eye(n) + Hw.T @ Hw, Hw.T @ rw_ref
     Hs, rw, A, g = np.full((m, n), np.nan), np.empty(m), np.full((n, n), np.nan), np.empty(n)
@@ -379,11 +390,7 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
     Hval[3, 4:8] = 0.0  # a zero group in one row of a pair
     Hval[10, 0:4] = 0.0
     m = cols.shape[0]
-    X = rng.standard_normal((n, n))
-    L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
-    Laug = np.vstack([L, rng.standard_normal((3, n))]) if virtual else L
-    y, hx = rng.standard_normal((2, m))
-    rws = 1.0 / rng.uniform(0.5, 2.0, m)
+    Laug, y, hx, rws = _whitening_inputs(rng, n, m, virtual)
     Hw, rw, A, g = np.empty((m, n)), np.empty(m), np.empty((n, n)), np.empty(n)
     ku._whiten(hx, Hval, cols, y, rws, Laug, Hw, rw, A, g)
     pairs = sum(np.array_equal(cols[r], cols[r + 1]) for r in range(m - 1))
@@ -392,10 +399,7 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
         H1, rw1, A1, g1 = np.empty((1, n)), np.empty(1), np.empty((n, n)), np.empty(n)
         ku._whiten(hx[r : r + 1], Hval[r : r + 1], cols[r : r + 1], y[r : r + 1], rws[r : r + 1], Laug, H1, rw1, A1, g1)
         assert np.array_equal(H1[0], Hw[r]), r
-    Hd = np.zeros((m, Laug.shape[0]))
-    for r in range(m):
-        np.add.at(Hd[r], cols[r], Hval[r])
-    Hw_ref = (rws[:, None] * Hd) @ Laug
+    Hw_ref = _dense_whitened(cols, Hval, rws, Laug)
     np.testing.assert_allclose(Hw, Hw_ref, rtol=0, atol=1e-13 * np.abs(Hw_ref).max())
     np.testing.assert_allclose(A, np.eye(n) + Hw_ref.T @ Hw_ref, rtol=0, atol=1e-13 * np.abs(A).max())
     np.testing.assert_allclose(g, Hw_ref.T @ (rws * (y - hx)), rtol=0, atol=1e-13 * np.abs(g).max())

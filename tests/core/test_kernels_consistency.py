@@ -314,7 +314,9 @@ def test_small_block_mahalanobis_is_the_general_one_bit_for_bit():
 def test_points_block_mahalanobis(m):
     """``_mahalanobis_lapack`` (the points' block: written out by rows of ``U`` up to ``ROWS_MAX`` rows, ``potrf``
     past it) is ``e^T P^-1 e`` (numpy's solve, to round-off), NaN where ``P`` is not positive definite or not
-    finite; ``_upper_rows`` gives numpy's Cholesky factor, transposed."""
+    finite; ``cholesky._upper_rows`` gives numpy's Cholesky factor, transposed."""
+    from stereopose_mc.core.kernels import cholesky as kcho
+
     rng = np.random.default_rng(40 + m)
     for trial in range(20):
         A = rng.standard_normal((m, 2 * m)) * np.logspace(-3, 3, m)[:, None]
@@ -325,7 +327,7 @@ def test_points_block_mahalanobis(m):
         assert got == pytest.approx(want, rel=1e-8), (m, trial)
         if m <= kc.ROWS_MAX:
             U = np.full((m, m), np.nan)
-            assert kc._upper_rows(P, U)
+            assert kcho._upper_rows(P, U)
             np.testing.assert_allclose(U.T, np.linalg.cholesky(P), rtol=0, atol=1e-12 * np.sqrt(np.abs(P).max()))
             assert np.array_equal(np.tril(U, -1), np.zeros((m, m)))
     bad = P - 2.0 * np.abs(np.linalg.eigvalsh(P)).max() * np.eye(m)

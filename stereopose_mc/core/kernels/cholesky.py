@@ -100,13 +100,40 @@ def _cholesky_upper(A, U):
     is the lower one: the factor ``U = L^T`` of ``_cholesky``, whose rows in reverse order the NEES read
     (``core.kernels.consistency``), as they read the compiled update's ``R+``.
     """
+    _lower_to_upper(A, U)
+    return _potrf(U, _UPLO_L)
+
+
+@njit(**_JIT)
+def _lower_to_upper(A, U):
+    """``U``'s upper triangle = the transpose of ``A``'s lower one, zeros below its diagonal (the start of an upper
+    factor ``U^T U = A``: ``_cholesky_upper``, ``_upper_rows``)."""
     n = A.shape[0]
     for i in range(n):
         for j in range(i):
             U[i, j] = 0.0
         for j in range(i, n):
             U[i, j] = A[j, i]
-    return _potrf(U, _UPLO_L)
+
+
+@njit(**_JIT)
+def _upper_rows(A, U):
+    """Upper ``U`` with ``U^T U = A`` (the lower triangle of ``A`` read), row by row: ``U[j, j:] = (A[j:, j] - sum_{k<j}
+    U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``model._combine_rows``, contiguous); False if
+    ``A`` is not positive definite (a pivot not > 0, NaN included). Written out, for small blocks: 0.36 against
+    ``potrf``'s 0.46 us at 15 x 15, 1.76 against 1.54 at 30 x 30."""
+    n = A.shape[0]
+    _lower_to_upper(A, U)
+    UT = U.T
+    for j in range(n):
+        _combine_rows(U, j, j, n, U, UT, j, 0, j, -1.0)
+        d = U[j, j]
+        if not d > 0.0:
+            return False
+        r = 1.0 / math.sqrt(d)
+        for c in range(j, n):
+            U[j, c] *= r
+    return True
 
 
 @njit(**_JIT)

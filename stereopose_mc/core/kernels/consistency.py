@@ -45,8 +45,8 @@ from numba import njit
 from . import attitude as _att
 from . import writable as _writable
 from .aligned import _apply_error_map, _error_map, _local, _qmul
-from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward
-from .model import _combine_rows, _dot, _dot_row, _dot_rows, _mirror_lower
+from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward, _upper_rows
+from .model import _dot, _dot_row, _dot_rows, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -72,6 +72,9 @@ def _mahalanobis(e, P, L, w):
     return s
 
 
+ROWS_MAX = 24  # _mahalanobis_lapack: the written-out factorization up to this size (potrf is faster at 30 x 30)
+
+
 @njit(**_JIT)
 def _mahalanobis_lapack(e, P, L, w):
     """``_mahalanobis`` of the points' block (3N x 3N): up to ``ROWS_MAX`` rows by ``_upper_rows`` (written out, four
@@ -94,32 +97,6 @@ def _mahalanobis_lapack(e, P, L, w):
         for i in range(k + 1, n):
             w[i] -= L[k, i] * wk
     return _dot(w, w, 0, n)
-
-
-ROWS_MAX = 24  # _mahalanobis_lapack: the written-out factorization up to this size (potrf is faster at 30 x 30)
-
-
-@njit(**_JIT)
-def _upper_rows(A, U):
-    """Upper ``U`` with ``U^T U = A`` (the lower triangle of ``A`` read), row by row: ``U[j, j:] = (A[j:, j] - sum_{k<j}
-    U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``model._combine_rows``, contiguous); False if
-    ``A`` is not positive definite (a pivot not > 0, NaN included)."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            U[i, j] = 0.0
-        for j in range(i, n):
-            U[i, j] = A[j, i]
-    UT = U.T
-    for j in range(n):
-        _combine_rows(U, j, j, n, U, UT, j, 0, j, -1.0)
-        d = U[j, j]
-        if not d > 0.0:
-            return False
-        r = 1.0 / math.sqrt(d)
-        for c in range(j, n):
-            U[j, c] *= r
-    return True
 
 
 @njit(**_JIT)
@@ -728,7 +705,8 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
     """One trial of ``nees_batch``: its 8 NEES into ``out`` (left as they are, NaN, where the state or ``P`` is not
     finite or ``P`` is not positive definite) and ``pd``, returned. ``Rg``: ``P``'s square root ``J U`` where the
     caller has one (``have``; used where ``_factor_given``); ``ws``: ``_nees_scratch``. The compiled update calls
-    it on each posterior as soon as it is formed (``core.kernels.update``: ``P+`` and its square root still in cache).
+    it on each posterior as soon as it is formed (``core.kernels.update``: ``P+`` and its square root still in cache;
+    the full state's through ``_nees_given`` first, the same numbers).
     """
     Tm, Sa, Mi, e0, TP, Pt, Sm, Pa, Uf, Rf, Lr, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, \
         Sp, Wp, W5 = ws  # fmt: skip

@@ -37,7 +37,8 @@ M M^T`` with ``M`` lower triangular (``_posterior_covariance_rev``): ``P+``'s ow
 factor comes with it, which the kernels return (as ``J M^T``) for the NEES to use instead of
 factorizing ``P+`` again (``core.kernels.consistency.nees_batch``). Given the true states (``x_true``, the
 engine's runs: ``mc.trial``), the kernels evaluate each posterior's NEES themselves as soon as ``P+`` and its
-square root are formed (``consistency._nees_one``, the per-trial body of ``nees_batch``: the same numbers), while
+square root are formed (``consistency._nees_one``, the per-trial body of ``nees_batch``, or for the full state
+``consistency._nees_given``, its path with the square root given: the same numbers), while
 they are still in cache: read again by a separate pass over the batch they come from memory (~2 us of the NEES's
 ~5.5 us per trial in case B's full state). The square root then stays in a scratch array and is not returned
 (nothing else reads it: written to a ``(B, n, n)`` output it was 1.8 MB of memory traffic per step at 250 trials).
