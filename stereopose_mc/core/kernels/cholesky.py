@@ -117,11 +117,13 @@ def _lower_to_upper(A, U):
 
 
 @njit(**_JIT)
-def _upper_rows(A, U):
+def _upper_rows(A, U, recip=True):
     """Upper ``U`` with ``U^T U = A`` (the lower triangle of ``A`` read), row by row: ``U[j, j:] = (A[j:, j] - sum_{k<j}
     U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``model._combine_rows``, contiguous); False if
     ``A`` is not positive definite (a pivot not > 0, NaN included). Written out, for small blocks: 0.36 against
-    ``potrf``'s 0.46 us at 15 x 15, 1.76 against 1.54 at 30 x 30."""
+    ``potrf``'s 0.46 us at 15 x 15, 1.76 against 1.54 at 30 x 30. ``recip``: a row is multiplied by the reciprocal
+    of its pivot's square root; else divided by it (``_cholesky_small``'s numbers, which the NEES's scalar 2 x 2 and
+    3 x 3 blocks repeat bit for bit)."""
     n = A.shape[0]
     _lower_to_upper(A, U)
     UT = U.T
@@ -130,9 +132,14 @@ def _upper_rows(A, U):
         d = U[j, j]
         if not d > 0.0:
             return False
-        r = 1.0 / math.sqrt(d)
-        for c in range(j, n):
-            U[j, c] *= r
+        d = math.sqrt(d)
+        if recip:
+            r = 1.0 / d
+            for c in range(j, n):
+                U[j, c] *= r
+        else:
+            for c in range(j, n):
+                U[j, c] /= d
     return True
 
 
@@ -142,20 +149,11 @@ def _cholesky_small(A, L):
 
     Row ``j`` of ``U = L^T`` (held in the upper triangle of ``L``, transposed at the end) is row
     ``j`` of ``A``'s upper triangle minus a combination of the rows above it, divided by the
-    square root of its pivot.
+    square root of its pivot (``_upper_rows``).
     """
+    if not _upper_rows(A, L, False):
+        return False
     n = A.shape[0]
-    for i in range(n):
-        for j in range(i, n):
-            L[i, j] = A[j, i]
-    for j in range(n):
-        _combine_rows(L, j, j, n, L, L.T, j, 0, j, -1.0)  # row j -= sum_k L[k, j] L[k] (L.T[j, k] = L[k, j])
-        d = L[j, j]
-        if not d > 0.0:
-            return False
-        d = math.sqrt(d)
-        for c in range(j, n):
-            L[j, c] /= d
     for i in range(n):
         for j in range(i):
             L[i, j] = L[j, i]
