@@ -37,6 +37,7 @@ import numpy as np
 from numba import njit
 
 from . import attitude as _att
+from ._refs import borrow, keep
 from .attitude import _qmul, _quat_times, _small_quaternion, _small_quaternion_jacobian
 from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
 
@@ -66,10 +67,12 @@ def _point_mean(x, N, pb):
 def _centroid_ref(xr, N, Dref, v):
     """``D_ref = D(q_ref)`` and ``v = D_ref P_bar,ref``; returns nothing (fills both)."""
     _dcm(xr[9:13], Dref)
-    pb = np.empty(3)
+    own = np.empty(3)
+    pb = borrow(own)  # (_refs; kept to the end)
     _point_mean(xr, N, pb)
     for a in range(3):
         v[a] = Dref[a, 0] * pb[0] + Dref[a, 1] * pb[1] + Dref[a, 2] * pb[2]
+    keep(own)
 
 
 @njit(**_JIT)
@@ -83,11 +86,11 @@ def _chart(xr, e, out, Dref, R, v):
     d0 = xr[3] + (w1 * v[2] - w2 * v[1])
     d1 = xr[4] + (w2 * v[0] - w0 * v[2])
     d2 = xr[5] + (w0 * v[1] - w1 * v[0])
-    dq = np.empty(4)
+    own = np.zeros(7)
+    dq, ub = borrow((own[:4], own[4:]))  # (_refs; kept to the end)
     _small_quaternion(e[9:12], dq)
     _qmul(xr[9:13], dq, out[9:13])  # q_ref (x) dq(delta)
     _dcm(dq, R)
-    ub = np.zeros(3)
     for i in range(N):
         u0 = xr[13 + 3 * i] + e[12 + 3 * i]
         u1 = xr[14 + 3 * i] + e[13 + 3 * i]
@@ -111,6 +114,7 @@ def _chart(xr, e, out, Dref, R, v):
     out[3] = d0 + e[3] - (w1 * v[2] - w2 * v[1])
     out[4] = d1 + e[4] - (w2 * v[0] - w0 * v[2])
     out[5] = d2 + e[5] - (w0 * v[1] - w1 * v[0])
+    keep(own)
 
 
 @njit(**_JIT)
@@ -168,28 +172,22 @@ def _chart_jacobian(xr, e, S):
     n = xr.shape[0]
     N = _n_points(n)
     S[:, :] = 0.0
-    Dref = np.empty((3, 3))
-    v = np.empty(3)
+    own = np.zeros(103)  # one allocation for the scratch below (ub: zeros)
+    ws = borrow(own)  # (_refs; kept to the end)
+    Dref, v, dq = ws[0:9].reshape((3, 3)), ws[9:12], ws[12:16]
+    Sq, R, dR = ws[16:28].reshape((4, 3)), ws[28:37].reshape((3, 3)), ws[37:73].reshape((4, 3, 3))
+    w, W, ub, u, dRtu = ws[73:76], ws[76:85].reshape((3, 3)), ws[85:88], ws[88:91], ws[91:103].reshape((3, 4))
     _centroid_ref(xr, N, Dref, v)  # D_ref (v is recomputed below at u)
-    dq = np.empty(4)
     _small_quaternion(e[9:12], dq)
-    Sq = np.empty((4, 3))
     _small_quaternion_jacobian(e[9:12], Sq)
     _quat_times(xr[9:13], Sq, S[9:13, 9:12], 1.0)
-    R = np.empty((3, 3))
-    dR = np.empty((4, 3, 3))
     _dcm_derivative(dq, R, dR)
-    w = np.empty(3)
     for a in range(3):
         w[a] = xr[6 + a] + e[6 + a]
-    W = np.empty((3, 3))  # [w x] D_ref / N
-    for c in range(3):
+    for c in range(3):  # W = [w x] D_ref / N
         W[0, c] = (w[1] * Dref[2, c] - w[2] * Dref[1, c]) / N
         W[1, c] = (w[2] * Dref[0, c] - w[0] * Dref[2, c]) / N
         W[2, c] = (w[0] * Dref[1, c] - w[1] * Dref[0, c]) / N
-    ub = np.zeros(3)
-    u = np.empty(3)
-    dRtu = np.empty((3, 4))
     for i in range(N):
         r0, c0 = 13 + 3 * i, 12 + 3 * i
         for a in range(3):
@@ -220,6 +218,7 @@ def _chart_jacobian(xr, e, S):
     S[5, 6], S[5, 7] = -v[1], v[0]
     S[n - 2, n - 3] = 1.0
     S[n - 1, n - 2] = 1.0
+    keep(own)
 
 
 @njit(**_JIT)
@@ -231,7 +230,8 @@ def _error_map(xr, T):
     q = xr[9:13]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
-    ws = np.empty(75)  # one allocation for the scratch below
+    own = np.empty(75)  # one allocation for the scratch below
+    ws = borrow(own)  # (_refs; kept to the end)
     Xi = ws[0:12].reshape((3, 4))  # 2 [L(q^*)]_vec
     Xi[0, 0], Xi[0, 1], Xi[0, 2], Xi[0, 3] = -2.0 * q1, 2.0 * q0, 2.0 * q3, -2.0 * q2
     Xi[1, 0], Xi[1, 1], Xi[1, 2], Xi[1, 3] = -2.0 * q2, -2.0 * q3, 2.0 * q0, 2.0 * q1
@@ -281,6 +281,7 @@ def _error_map(xr, T):
     T[5, 6], T[5, 7] = v[1], -v[0]
     T[n - 3, n - 2] = 1.0
     T[n - 2, n - 1] = 1.0
+    keep(own)
 
 
 @njit(**_JIT)
@@ -369,6 +370,9 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
     e0 = np.zeros(ne)
+    own = (S, T, QT, W, Sp, PS, Sc, Y, M, e0)  # borrowed below (_refs), kept to the end
+    x, x_pred, Tb, P, Q, outb = borrow((x, x_pred, Tb, P, Q, out))
+    S, T, QT, W, Sp, PS, Sc, Y, M, e0 = borrow(own)
     for b in range(B):
         if chart == 1:
             _chart_jacobian(x[b], e0, S)
@@ -390,7 +394,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
         else:
             np.dot(T, PS, Y)
         np.dot(Y, P[b], M)  # M = Phi_e P
-        Pb = out[b]
+        Pb = outb[b]
         np.dot(Y, M.T, Pb)  # Phi_e M^T
         for j in range(n):
             for r in range(ne):
@@ -403,6 +407,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
             for j in range(r + 1):
                 Pb[r, j] += W[r, j]
         _mirror_lower(Pb)
+    keep(own)
     return out
 
 
@@ -420,13 +425,15 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
     become ``e_omega``, ``delta = H_q L(q_ref) d dq/d delta``, ``e_k``.
     """
     N = _n_points(xr.shape[0])
-    ws = np.empty(70)  # one allocation for the scratch below
+    own = np.empty(70)  # one allocation for the scratch below
+    ws = borrow(own)  # (_refs; kept to the ends)
     Dref = ws[0:9].reshape((3, 3))
     R = ws[9:18].reshape((3, 3))
     v = ws[18:21]
     _chart(xr, e, xt, Dref, R, v)
     _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
     if not compute_jac:
+        keep(own)
         return
     C = 9 if disparity else 8
     nf = vis.shape[0] * C
@@ -454,6 +461,7 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
         _small_quaternion_jacobian(e[9:12], Sq)
         _quat_times(xr[9:13], Sq, LSq, 1.0)
         _att._pseudo_rows_rotated(Hval, nf, LSq, h)
+    keep(own)
 
 
 def measurement_columns(ne, vis, channels, pseudo):

@@ -44,6 +44,7 @@ from numba import njit
 
 from . import attitude as _att
 from . import writable as _writable
+from ._refs import borrow, keep
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward, _upper_rows
 from .model import _dot, _dot_row, _dot_rows, _mirror_lower
@@ -556,6 +557,7 @@ def errors_batch(x_hat, x_true):
     B, n = x_hat.shape
     out = np.empty((B, 6))
     rad = 180.0 / math.pi
+    x_hat, x_true = borrow((x_hat, x_true))  # (_refs: the caller's; no reference counts in the views below)
     for t in range(B):
         xh, xt = x_hat[t], x_true[t]
         for b in range(3):
@@ -766,10 +768,14 @@ def nees_batch(x_hat, P, x_true, attitude, Rg):
     B = x_hat.shape[0]
     out = np.full((B, 8), np.nan)
     pd = np.zeros(B, np.bool_)
-    ws = _nees_scratch(x_hat.shape[1], P.shape[1])
+    own = _nees_scratch(x_hat.shape[1], P.shape[1])
     have = Rg.shape[0] == B
+    # borrowed (_refs: no atomic reference counts in the per-trial views and calls); the scratch kept to the end
+    ws = borrow(own)
+    x_hat, P, x_true, Rg, ob = borrow((x_hat, P, x_true, Rg, out))
     for t in range(B):
-        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws[9], have, out[t], ws)
+        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws[9], have, ob[t], ws)
+    keep(own)
     return out, pd
 
 

@@ -29,6 +29,8 @@ import numpy as np
 from numba import njit, types
 from numba.extending import intrinsic
 
+from ._refs import borrow, keep
+
 N_SHARED = 13  # rho, rho_dot, omega, q
 NNZ = 16  # non-zero columns of one measurement row
 
@@ -272,6 +274,8 @@ def propagate_batch(x, rL, nd, ndd, h, mu, substeps, renormalize):
     k3 = np.empty(n)
     k4 = np.empty(n)
     D = np.empty((3, 3))
+    own = (y, yt, k1, k2, k3, k4, D)  # borrowed below (_refs), kept to the end
+    y, yt, k1, k2, k3, k4, D = borrow(own)
     for b in range(B):
         for i in range(n):
             y[i] = x[b, i]
@@ -295,6 +299,7 @@ def propagate_batch(x, rL, nd, ndd, h, mu, substeps, renormalize):
                 y[i] = y[i] / qn
         for i in range(n):
             out[b, i] = y[i]
+    keep(own)
     return out
 
 
@@ -396,8 +401,11 @@ def F_reduced_batch(x, rL, nd, ndd, mu):
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     ws = np.empty(_F_SCRATCH)
+    own = (D, dD, ws)  # borrowed below (_refs), kept to the end
+    xb, ob, D, dD, ws = borrow((x, out, D, dD, ws))
     for b in range(B):
-        _F_reduced(x[b], rL, nd, ndd, mu, out[b], D, dD, ws)
+        _F_reduced(xb[b], rL, nd, ndd, mu, ob[b], D, dD, ws)
+    keep(own)
     return out
 
 
@@ -474,11 +482,14 @@ def transition_reduced_batch(Fr, dt, order):
     T = np.empty((15, 15))
     A = np.empty((13, 15))
     tmp = np.empty((13, 15))
+    own = (T, A, tmp)  # borrowed below (_refs), kept to the end
+    Fb, T, A, tmp = borrow((Fr, T, A, tmp))
     for b in range(B):
-        _taylor_reduced(Fr[b], dt, order, T, A, tmp)
+        _taylor_reduced(Fb[b], dt, order, T, A, tmp)
         for i in range(13):
             for j in range(15):
                 out[b, i, j] = T[i, j]
+    keep(own)
     return out
 
 
@@ -727,11 +738,13 @@ def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, com
     C = 9 if disparity else 8
     _dcm_derivative(x[9:13], D, dD)
     nv = vis.shape[0]
-    ws = np.empty((12, 7))  # the rows' scratch: one allocation per call, not per feature
+    own = np.empty((12, 7))  # the rows' scratch: one allocation per call, not per feature
+    ws = borrow(own)  # (_refs; kept to the end)
     _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hval, ws)
     if pseudo:
         _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3],
                      ws.ravel())  # fmt: skip
+    keep(own)
 
 
 @njit(**_JIT)
