@@ -183,6 +183,16 @@ def test_cholesky_on_the_transposed_layout(n):
     assert not ku._cholesky_t(bad, L, False)
     bad[n - 1, n - 1] = np.nan
     assert not ku._cholesky_t(bad, L, False)
+    # _cholesky_tu: the same factor in place from the upper triangle (the lower one not read)
+    from stereopose_mc.core.kernels import cholesky as kc
+
+    Lu = np.triu(A) + np.tril(np.full((n, n), np.nan), -1)
+    assert kc._cholesky_tu(Lu)
+    np.testing.assert_allclose(Lu, np.linalg.cholesky(A), rtol=0, atol=1e-13 * np.abs(A).max() ** 0.5)
+    assert np.all(np.triu(Lu, 1) == 0.0)
+    bad = np.triu(A)
+    bad[n - 1, n - 1] = -1.0
+    assert not kc._cholesky_tu(bad)
 
 
 @pytest.mark.parametrize("n", [1, 5, 8, 9, 17, 29, 30, 32, 33, 64, 65, 70, 134])
@@ -362,13 +372,20 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     A_ref, g_ref = np.eye(n) + Hw.T @ Hw, Hw.T @ rw_ref
     Hs, rw, A, g = np.full((m, n), np.nan), np.empty(m), np.full((n, n), np.nan), np.empty(n)
     ws, wi = np.empty(7 * m + 16 * n + 14), np.empty(2 * m + n + 1, np.int64)
-    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi)
+    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi, True)
     np.testing.assert_allclose(rw, rw_ref, rtol=1e-15, atol=0)
     np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
     np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
     assert np.array_equal(A, A.T)
+    # without ``upper`` (an EKF step, which reads only the lower triangle): the same lower triangle and g, and the
+    # upper triangle not mirrored (left NaN above the diagonal blocks of the strips, without virtual columns)
+    A1, g1 = np.full((n, n), np.nan), np.empty(n)
+    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A1, g1, ws, wi, False)
+    low = np.tril_indices(n)
+    assert np.array_equal(A1[low], A[low]) and np.array_equal(g1, g)
+    assert np.isnan(A1[0, n - 1])
     A2, g2 = np.empty((n, n)), np.empty(n)
-    ku._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi)
+    ku._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi, True)
     if n > ku.LARGE_N:
         assert np.array_equal(A2, A) and np.array_equal(g2, g)
     else:  # the dense product below LARGE_N (g summed row by row as the rows are formed)

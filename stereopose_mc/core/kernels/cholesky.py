@@ -93,6 +93,22 @@ def _cholesky_t(A, L, rev):
 
 
 @njit(**_JIT)
+def _cholesky_tu(L):
+    """``_cholesky_t`` in place from the upper triangle of ``L`` (C order): ``potrf`` with ``uplo = "L"`` on its memory
+    read column-major, without ``_cholesky_t``'s transposed copy first (a strided pass over ``n^2`` entries); the factor
+    comes back to the lower triangle, zeros above. For a matrix whose two triangles are both computed (symmetric to
+    round-off: ``update._center_cov``'s, either triangle as good). False if it is not positive definite."""
+    if not _potrf(L, _UPLO_L):
+        return False
+    n = L.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            L[j, i] = L[i, j]
+            L[i, j] = 0.0
+    return True
+
+
+@njit(**_JIT)
 def _cholesky_upper(A, U):
     """Upper ``U`` with ``U^T U = A`` (only the lower triangle of ``A`` is read); False if not PD.
 

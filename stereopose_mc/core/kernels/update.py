@@ -57,7 +57,7 @@ from numba import njit, types
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _measure_aligned, virtual_rows
-from .cholesky import _KIND_D, _UPLO_U, _cholesky, _cholesky_t, _forward, _potrf
+from .cholesky import _KIND_D, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf
 from .consistency import _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
 
@@ -244,13 +244,13 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
 
 
 @njit(**_JIT)
-def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi):
+def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper):
     """``_whiten`` and ``g = Hw^T rw``; past ``LARGE_N`` columns by ``_whiten_staircase`` (the same numbers to
-    round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch)."""
+    round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch; ``upper``: as there)."""
     if Hw.shape[1] <= LARGE_N:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
         _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g)
     else:
-        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi)
+        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper)
 
 
 @njit(**_JIT)
@@ -266,7 +266,7 @@ def _own(h, c, n, Bv, r):
 
 
 @njit(**_JIT)
-def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
+def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper):
     """``_whiten`` and ``g = Hw^T rw`` for a large ``n``, skipping the exact zeros of ``Hw = R^-1/2 H L``.
 
     A row of ``H`` whose last non-zero column is ``c`` gives a row of ``Hw`` that is zero past
@@ -284,8 +284,9 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
     ``Hs^T Hs`` is formed by strips of ``STAIR_BLOCK`` rows of ``A``: strip ``[i0, i1)`` is
     ``Hs[r0:, i0:i1]^T Hs[r0:, :i1]`` over the rows ``r0:`` that reach column ``i0`` (one BLAS
     ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
-    ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. ``A`` is exactly
-    symmetric (lower triangle mirrored).
+    ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. With ``upper``, ``A`` is exactly
+    symmetric (lower triangle mirrored); without, only its lower triangle is written (an EKF step reads no other:
+    ``_factor``; the mirror is ~1.5 % of the update at ``N = 40``).
 
     The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
     columns (every point, for the centroid) are therefore not split here but whitened in the
@@ -405,7 +406,8 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi):
                 A.ctypes, n)  # fmt: skip
     for i in range(n):
         A[i, i] += 1.0
-    _mirror_lower(A)
+    if upper:
+        _mirror_lower(A)
 
 
 @njit(**_JIT)
@@ -790,6 +792,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
     big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n layout)
+    # whether A's upper triangle is read (the iterations' A z, the Mahalanobis stopping rule's, the copy a step control
+    # keeps): not in an EKF step, whose large-n whitening then leaves it unwritten (_whiten_staircase)
+    upper = max_iter > 1 or control != 0 or (tol > 0.0 and stopping == 0)
     cen = chart == 1 and n > LARGE_N  # whitened in the centered point coordinates (above)
     Np = (n - 14) // 3
     g2 = np.empty(n)  # _sqrt_mul's scratch
@@ -844,8 +849,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             for r in range(m):
                 rws[r] = 1.0 / math.sqrt(R[b, r])
         if cen:
-            _center_cov(P[b], A, T, Np)
-            if not _cholesky_t(A, L, False):
+            _center_cov(P[b], L, T, Np)  # T P T^T, factorized in place from its upper triangle
+            if not _cholesky_tu(L):
                 ok[b] = False
                 continue
             _centered_virtual_rows(Laug, Np)
@@ -861,9 +866,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         _masked(hx, Hval, yb, mk)
         if cen:
             _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         else:
-            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -999,9 +1004,9 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _masked(hx, Hval, yb, mk)
             if cen:
                 _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
             else:
-                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi)
+                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
         if failed or not (fresh or _factor(Afin, LA)):
             ok[b] = False
             continue
