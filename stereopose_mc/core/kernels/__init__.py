@@ -11,7 +11,9 @@ chart's code as an argument); ``core/kernels/update.py`` the EKF and IEKF update
 three charts (which, given the truth, evaluate each posterior's NEES as they form it);
 ``core/kernels/consistency.py`` the per-step NEES; ``core/kernels/cholesky.py`` the small
 Cholesky factorizations and solves both use. ``_cache`` keys Numba's cache by the
-whole package's source; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``.
+whole package's source; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``;
+``_refs`` lets the kernels' per-trial loops work on borrowed arrays, without the atomic reference
+counting of their views and calls (``borrow``, and ``keep`` for the owners).
 """
 
 import numpy as np
