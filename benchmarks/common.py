@@ -255,6 +255,11 @@ def blas_limit(threads: int | None):
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is in the bench extra
         return contextlib.nullcontext()
+    # the kernels' BLAS (SciPy's OpenBLAS, which Numba calls) loaded first: threadpoolctl limits the libraries loaded
+    # when the limit is set, and the kernels load theirs lazily (a section that first loaded them inside the limit ran
+    # their BLAS calls on 2 threads)
+    import stereopose_mc.core.kernels  # noqa: F401
+
     return threadpool_limits(limits=threads)
 
 
