@@ -21,7 +21,7 @@ borrowed reference, so the array it came from must stay referenced for as long a
   reuse its memory).
 
 A borrowed array never leaves the kernel: not returned, not stored in a returned container
-(boxing it would make a NumPy array of memory that nothing owns). ``tests/core/test_kernels.py``
+(boxing it would make a NumPy array of memory that nothing owns). ``tests/core/test_kernels_refs.py``
 checks the two rules on every kernel source that borrows.
 """
 

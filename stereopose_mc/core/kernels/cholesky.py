@@ -71,8 +71,8 @@ def _cholesky_t(A, L, rev):
 
     OpenBLAS's ``potrf`` is ~10 % faster for a column-major lower factor (``uplo = "L"``) than
     for an upper one at n = 74-134, so the lower triangle of ``A`` (with ``rev``: of ``J A J``)
-    goes to the upper triangle of ``L`` (the same memory read column-major), and the factor
-    comes back to the lower triangle after. False if ``A`` is not positive definite."""
+    goes to the upper triangle of ``L`` (the same memory read column-major), and ``_cholesky_tu`` factorizes it there
+    and brings the factor back to the lower triangle. False if ``A`` is not positive definite."""
     n = A.shape[0]
     for i in range(n):
         for j in range(i):
@@ -83,13 +83,7 @@ def _cholesky_t(A, L, rev):
         else:
             for j in range(i, n):
                 L[i, j] = A[j, i]
-    if not _potrf(L, _UPLO_L):
-        return False
-    for i in range(n):
-        for j in range(i + 1, n):
-            L[j, i] = L[i, j]
-            L[i, j] = 0.0
-    return True
+    return _cholesky_tu(L)
 
 
 @njit(**_JIT)

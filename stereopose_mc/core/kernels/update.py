@@ -821,7 +821,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     ev = np.full((B, 9), np.nan)  # the posteriors' NEES and pd (x_true given)
     outs = (xo, Po, nu, nis, its, conv, ok, Ro, ev)
     # The loop works on borrowed arrays (``_refs.borrow``: no atomic reference counting in its views and calls, 1.4 us
-    # per trial of case B). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
+    # per trial of the full-state EKF on case B). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
     own = (Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T,
            D, dD)  # fmt: skip
     x, P, y, R, mask, vis, alpha, cols, x_true = borrow((x, P, y, R, mask, vis, alpha, cols, x_true))
