@@ -162,11 +162,12 @@ def test_measurement_jacobian_finite_differences():
     assert np.all(np.abs(H - fd) <= 1e-6 * scale)
 
 
-@pytest.mark.parametrize("n", [1, 3, 70, 134])
+@pytest.mark.parametrize("n", [1, 2, 3, 8, 9, 10, 17, 70, 134])
 def test_cholesky_on_the_transposed_layout(n):
-    """``_cholesky_t`` (``potrf`` with ``uplo = "L"`` on the transposed copy) equals numpy's factor of ``A``, or
-    with ``rev`` of ``J A J``, reading only the lower triangle of ``A``; False on a matrix that is not positive
-    definite or has a non-finite pivot."""
+    """``_cholesky_t`` (``_upper_blocked``'s blocks of 8 rows and pairs around BLAS products, on the transposed
+    copy: the sizes cover one row, one pair, a whole block, a block and a row, a pair over) equals numpy's factor of
+    ``A`` (LAPACK's), or with ``rev`` of ``J A J``, reading only the lower triangle of ``A``; False on a matrix that
+    is not positive definite (its first, middle or last pivot) or has a non-finite pivot."""
     from stereopose_mc.core.kernels import update as ku
 
     rng = np.random.default_rng(300 + n)
@@ -183,6 +184,17 @@ def test_cholesky_on_the_transposed_layout(n):
     assert not ku._cholesky_t(bad, L, False)
     bad[n - 1, n - 1] = np.nan
     assert not ku._cholesky_t(bad, L, False)
+    for k, v in ((0, np.inf), (0, 0.0), (n // 2, -1.0), (n // 2, np.nan)):
+        bad = Alow.copy()
+        bad[k, k] = v
+        assert not ku._cholesky_t(bad, L, False), (k, v)
+    # a singular matrix (rank n - 1 from its middle row on): its pivot there is round-off, not > 0 or not PD after
+    if n >= 3:
+        S = A.copy()
+        m = n // 2
+        S[m, :] = S[m - 1, :]
+        S[:, m] = S[:, m - 1]
+        assert not ku._cholesky_t(S - 1e-9 * np.abs(A).max() * np.eye(n), L, False)
     # _cholesky_tu: the same factor in place from the upper triangle (the lower one not read)
     from stereopose_mc.core.kernels import cholesky as kc
 

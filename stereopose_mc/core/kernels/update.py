@@ -6,7 +6,8 @@ trial at a time: every product with ``H`` touches only the 16 non-zero columns o
 (a feature's rows see ``rho, rho_dot, omega, q`` and its own point; the pseudo rows
 ``omega, q, k``), the symmetric positive definite systems (the whitened ``A = I + Hw^T Hw``
 of both updates, the EKF being one Gauss-Newton step of the IEKF, and ``P-`` itself) are
-solved by Cholesky factorizations (LAPACK's ``potrf`` in place, ``_cholesky``); ``P+`` is the
+solved by Cholesky factorizations (LAPACK's ``potrf`` in place, ``_cholesky``; past ``LARGE_N`` columns by
+blocks of rows around BLAS products, ``cholesky._upper_blocked``: 25-35 % faster there); ``P+`` is the
 Joseph form of the numpy path evaluated for the optimal gain (``L A^-1 L^T``, positive
 semi-definite by construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
 step control (line search on the MAP cost with step halving, or Levenberg-Marquardt's damped
@@ -52,12 +53,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, types
+from numba import njit
 
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _measure_aligned, virtual_rows
-from .cholesky import _KIND_D, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf
+from .cholesky import _KIND_D, _NOTRANS, _TRANS, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf, _xxgemm
 from .consistency import _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
 
@@ -74,14 +75,6 @@ REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 REV_BLOCK_SMALL = 8
 
 
-# BLAS's dgemm as Numba's own ``np.dot`` calls it (resolved at run time like ``cholesky._xxpotrf``), called directly for
-# products of sub-matrices given by a first element and a leading dimension (column-major, as BLAS sees a C-order
-# matrix: transposed), with ``beta``
-_xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
-    types.char, types.char, types.char, types.intp, types.intp, types.intp, types.CPointer(types.float64),
-    types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.intp,
-    types.CPointer(types.float64), types.CPointer(types.float64), types.intp))  # fmt: skip
-_NOTRANS, _TRANS = 110, 116  # ord("n"), ord("t")
 
 
 @njit(**_JIT)
@@ -468,7 +461,7 @@ def _factor(A, LA):
     lower triangle of ``A`` is read, as by ``_cholesky``. False if ``A`` is not positive definite.
 
     Up to ``LARGE_N`` columns ``J A J``'s lower triangle is copied to ``LA`` and factorized in place as by
-    ``_cholesky`` (no transposition after); past it by ``_cholesky_t``'s layout.
+    ``_cholesky`` (no transposition after); past it by ``_cholesky_t`` (``cholesky._upper_blocked``).
     """
     n = A.shape[0]
     if n > LARGE_N:
@@ -791,7 +784,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Laug = np.empty((n + (3 if chart == 1 else 0), n))  # L, then the rows of the virtual columns (_with_virtual)
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
-    big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n layout)
+    big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n factorization)
     # whether A's upper triangle is read (the iterations' A z, the Mahalanobis stopping rule's, the copy a step control
     # keeps): not in an EKF step, whose large-n whitening then leaves it unwritten (_whiten_staircase)
     upper = max_iter > 1 or control != 0 or (tol > 0.0 and stopping == 0)
