@@ -205,6 +205,17 @@ def test_cholesky_on_the_transposed_layout(n):
     bad = np.triu(A)
     bad[n - 1, n - 1] = -1.0
     assert not kc._cholesky_tu(bad)
+    # _upper_blocked's own layouts: the first n rows of a taller scratch (the update's Laug[:n]: blocks), a block of a
+    # wider matrix and a Fortran-ordered copy (potrf's path): the same upper factor
+    U_ref = np.linalg.cholesky(A).T
+    tall = np.full((n + 3, n), np.nan)
+    tall[:n] = np.triu(A) + np.tril(np.full((n, n), np.nan), -1)
+    wide = np.zeros((n + 2, n + 2))
+    wide[:n, :n] = np.triu(A)
+    for U in (tall[:n], wide[:n, :n], np.asfortranarray(np.triu(A))):
+        assert kc._upper_blocked(U)
+        np.testing.assert_allclose(np.triu(U), U_ref, rtol=0, atol=1e-13 * np.abs(A).max() ** 0.5)
+    assert np.all(np.isnan(tall[n:]))  # nothing written past the n rows
 
 
 @pytest.mark.parametrize("n", [1, 5, 8, 9, 17, 29, 30, 32, 33, 64, 65, 70, 134])

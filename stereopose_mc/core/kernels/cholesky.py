@@ -35,10 +35,10 @@ _xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
     types.CPointer(types.float64), types.CPointer(types.float64), types.intp))  # fmt: skip
 _NOTRANS, _TRANS = 110, 116  # ord("n"), ord("t")
 
-# _upper_blocked's blocks: a BLAS product takes off the rows above a block of CHOL_BLOCK rows, then one per CHOL_ROWS rows
-# inside it takes off those of the block above them, and each row its own pair's (measured at n = 59-134, single thread:
-# 8 / 2 fastest, 16 / 2 within 3 %; one level of blocks, 2 rows: 10-20 % slower; blocks of 16-32 rows solved by rows
-# alone: slower than potrf)
+# _upper_blocked's blocks: a BLAS product takes off the rows above a block of CHOL_BLOCK rows, then one per CHOL_ROWS
+# rows inside it takes off those of the block above them, and each row its own pair's (measured at n = 59-134, single
+# thread: 8 / 2 fastest, 16 / 2 within 3 %; one level of blocks, 2 rows: 10-20 % slower; blocks of 16-32 rows solved by
+# rows alone: slower than potrf)
 CHOL_BLOCK = 8
 CHOL_ROWS = 2
 
@@ -119,8 +119,8 @@ def _cholesky_tu(L):
 @njit(**_JIT)
 def _upper_blocked(U):
     """Upper ``U`` with ``U^T U = A`` in place, ``A`` given by the upper triangle of ``U`` (C order; the entries below
-    the diagonal are left undefined: ``_cholesky_tu`` overwrites them), by blocks of rows for the large ``n`` of the update (74-134 columns); False if ``A`` is not
-    positive definite (a pivot not > 0 or not finite, NaN included).
+    the diagonal are left undefined: ``_cholesky_tu`` overwrites them), by blocks of rows for the large ``n`` of the
+    update (74-134 columns); False if ``A`` is not positive definite (a pivot not > 0 or not finite, NaN included).
 
     Row ``j`` of ``U`` is ``(A[j, j:] - sum_{k<j} U[k, j] U[k, j:]) / sqrt(pivot)`` (``_upper_rows``). By blocks:
     a block of ``CHOL_BLOCK`` rows first takes off all the rows above it by one BLAS product (``U[j0:j1, j0:] -=
@@ -128,8 +128,11 @@ def _upper_blocked(U):
     pair of rows (``CHOL_ROWS``) the block's rows above it the same way, and each row its pair's first row
     (``model._combine_rows``). 30-35 % faster than LAPACK's (OpenBLAS's) ``potrf`` at n = 104-134, 25 % at 74, its
     numbers to round-off (``potrf`` blocks likewise, by other blocks); ``potrf`` stays below ``LARGE_N``'s sizes,
-    where the two are within a few percent."""
+    where the two are within a few percent. ``U`` must be C-contiguous (the kernels' scratch); any other layout goes to
+    ``potrf`` (the same factor)."""
     n = U.shape[0]
+    if n == 0 or U.strides[1] != 8 or U.strides[0] != 8 * n:
+        return _potrf(U, _UPLO_L)
     ab = np.empty(2)
     ab[0], ab[1] = -1.0, 1.0
     UT = U.T

@@ -58,7 +58,8 @@ from numba import njit
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _measure_aligned, virtual_rows
-from .cholesky import _KIND_D, _NOTRANS, _TRANS, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf, _xxgemm
+from .cholesky import (_KIND_D, _NOTRANS, _TRANS, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf,
+                       _xxgemm)  # fmt: skip
 from .consistency import _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
 
