@@ -165,9 +165,10 @@ def test_measurement_jacobian_finite_differences():
 @pytest.mark.parametrize("n", [1, 2, 3, 8, 9, 10, 17, 70, 134])
 def test_cholesky_on_the_transposed_layout(n):
     """``_cholesky_t`` (``_upper_blocked``'s blocks of 8 rows and pairs around BLAS products, on the transposed
-    copy: the sizes cover one row, one pair, a whole block, a block and a row, a pair over) equals numpy's factor of
-    ``A`` (LAPACK's), or with ``rev`` of ``J A J``, reading only the lower triangle of ``A``; False on a matrix that
-    is not positive definite (its first, middle or last pivot) or has a non-finite pivot."""
+    copy: 1, 2, 3, 8, 9, 10 and 17 rows are one row, a pair, a pair and a row, a block, a block and a row, a block
+    and a pair, two blocks and a row) equals numpy's factor of ``A`` (LAPACK's), or with ``rev`` of ``J A J``,
+    reading only the lower triangle of ``A``; False on a matrix that is not positive definite (its first, middle or
+    last pivot) or has a non-finite pivot."""
     from stereopose_mc.core.kernels import update as ku
 
     rng = np.random.default_rng(300 + n)

@@ -76,8 +76,6 @@ REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 REV_BLOCK_SMALL = 8
 
 
-
-
 @njit(**_JIT)
 def _chol_solve(L, b):
     """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
