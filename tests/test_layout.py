@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 CORE = Path(__file__).resolve().parents[1] / "stereopose_mc" / "core"
-ALLOWED_TOP = {"numpy", "scipy", "numba", "__future__"}  # numba: core/kernels (DEVGUIDE: numpy/scipy/numba only)
+ALLOWED_TOP = {"numpy", "scipy", "numba", "__future__"}  # numba: core/kernels (the layer rule: numpy/scipy/numba only)
 
 
 def _core_modules() -> set[str]:

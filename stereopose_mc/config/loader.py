@@ -332,7 +332,7 @@ def _truth_sigma(data: Any, key: str) -> float | None:
 
 
 def _points_behind(data: Any) -> list[tuple[Loc, str]]:
-    """Feature points with ``y <= 0`` at t = 0: ``rho_i = rho_0 + D(q0) P_i`` (MODEL.md)."""
+    """Feature points with ``y <= 0`` at t = 0: ``rho_i = rho_0 + D(q0) P_i`` (docs/model.md)."""
     rho = _ok(_VEC3, _get(data, "truth_initial_state", "rho_m"))
     q = _ok(TypeAdapter(list[float]), _get(data, "truth_initial_state", "q"))
     points = _get(data, "target", "feature_points_m")

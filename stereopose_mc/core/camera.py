@@ -1,4 +1,4 @@
-"""Stereo camera measurement model (MODEL.md, thesis 3.1 and 6.1.3).
+"""Stereo camera measurement model (docs/model.md, thesis 3.1 and 6.1.3).
 
 Right camera at the leader's centre of mass, left camera at ``+b`` along ``x``, both
 looking along ``+y``, focal length 1 (normalized image coordinates). For a feature at

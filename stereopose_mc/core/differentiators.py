@@ -2,7 +2,7 @@
 
 Three estimators of the derivative of a signal ``w(t)`` sampled at uniform spacing
 ``dt``, each using only the past (causal), for the inertia pseudo-measurement's angular
-acceleration ``alpha = d omega / dt`` (MODEL.md, docs/angular-acceleration.md):
+acceleration ``alpha = d omega / dt`` (docs/model.md, docs/angular-acceleration.md):
 
 - **Savitzky-Golay** (local polynomial least squares, appendix B.1): fit a polynomial
   of degree ``p`` to the newest ``W`` samples and differentiate it at the newest one;

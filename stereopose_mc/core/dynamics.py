@@ -1,6 +1,6 @@
 """Process model ``x_dot = f(x, t)`` of the relative state and its integration.
 
-Translation of the target's centre of mass in the leader's LVLH frame (MODEL.md):
+Translation of the target's centre of mass in the leader's LVLH frame (docs/model.md):
 
     x'' =  2 nu' y' + nu'' y + nu'^2 x - mu (r_L + x) / R^3 + mu / r_L^2
     y'' = -2 nu' x' - nu'' x + nu'^2 y - mu y / R^3

@@ -1,6 +1,6 @@
 """A start from the first stereo frame: triangulation and a rigid-body fit of image velocities.
 
-Camera geometry of MODEL.md (right camera at the origin, left at ``+b`` along ``x``, both
+Camera geometry of docs/model.md (right camera at the origin, left at ``+b`` along ``x``, both
 looking along ``+y``, focal length ``f``). For one feature with measurements
 ``[u_R, v_R, u_L, v_L, du_R, dv_R, du_L, dv_L]``, with ``v = (v_R + v_L)/2`` and
 ``dv = (dv_R + dv_L)/2`` (the two cameras see the same ``v``):

@@ -4,7 +4,7 @@ Every function takes states ``x (..., n)``, ``n = 13 + 3N + 2``, with any leadin
 axes, and keeps them. The leader's ``r_L, nu', nu''`` may be scalars or arrays that
 broadcast to the batch shape.
 
-Building blocks (MODEL.md; ``W = w + w_L``, ``w_T = D^T W``, ``I = diag(J)``,
+Building blocks (docs/model.md; ``W = w + w_L``, ``w_T = D^T W``, ``I = diag(J)``,
 ``J = [e^k1, 1, e^-k2]``):
 
 - ``D(q) = A(q) / |q|^2`` with ``A`` the homogeneous quadratic form, so

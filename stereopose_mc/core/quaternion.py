@@ -53,7 +53,7 @@ def dcm(q: Array) -> Array:
     """Rotation matrix ``D(q)`` (``...,3,3``) of the normalized quaternion.
 
     Written in the homogeneous form ``D = (...)/|q|^2`` so that a quaternion that has
-    drifted off the unit sphere still gives an orthonormal matrix (MODEL.md: q is
+    drifted off the unit sphere still gives an orthonormal matrix (docs/model.md: q is
     normalized inside D(q)).
     """
     q = np.asarray(q, dtype=float)

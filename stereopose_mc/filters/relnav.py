@@ -1,6 +1,6 @@
 """One filter step of the relative-navigation problem, batched over trials.
 
-This layer binds the generic kernels of ``core.kalman`` to the model of MODEL.md:
+This layer binds the generic kernels of ``core.kalman`` to the model of docs/model.md:
 
 - prediction from the posterior at ``t_{k-1}``: ``x-`` by RK4 (``substeps`` per step)
   of ``core.dynamics.f``; ``F`` evaluated at the posterior ``x+(t_{k-1})``;

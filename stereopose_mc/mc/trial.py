@@ -62,7 +62,7 @@ class Bounds:
 
 
 def errors(x_hat: Array, x_true: Array) -> Array:
-    """The six errors ``(..., 6)``: m, m/s, deg/s, deg, -, - (MODEL.md, thesis 6.46-6.60)."""
+    """The six errors ``(..., 6)``: m, m/s, deg/s, deg, -, - (docs/model.md, thesis 6.46-6.60)."""
     N = st.n_points(x_hat.shape[-1])
     ks = st.k_slice(N)
     d = x_hat - x_true

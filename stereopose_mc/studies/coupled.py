@@ -3,7 +3,7 @@
 Both describe the motion, in the leader's LVLH frame ``L``, of feature points ``P_i``
 fixed in the target's body frame ``T`` (thesis section 2.4). ``P_i^L = D(q) P_i`` is the
 point's offset from the target's centre of mass in ``L``, ``w`` the relative angular
-velocity (in ``L``), ``g(rho, rho')`` the nonlinear relative acceleration of MODEL.md
+velocity (in ``L``), ``g(rho, rho')`` the nonlinear relative acceleration of docs/model.md
 (:func:`stereopose_mc.core.dynamics.translational_acceleration`).
 
 **Simplified coupled model** (the package's, thesis eq. 2.44), state of size 13 + 3N:
@@ -27,7 +27,7 @@ relative translational dynamics. With ``a = w x P^L``, ``b = w x (w x P^L)``,
 
 i.e. ``rho_i'' = g(rho_i - P^L, rho_i' - w x P^L) + w' x P^L + w x (w x P^L)``, which is
 what substituting thesis eqs. 2.37-2.39 into the translational equations gives. The
-attitude block is the package's (MODEL.md; the thesis's eq. 2.27 is replaced by its
+attitude block is the package's (docs/model.md; the thesis's eq. 2.27 is replaced by its
 correct form), ``w'`` enters the point equations. The c.m. block is kept so that both
 models carry the same attitude and c.m. states (the thesis's case has ``P_0 = 0``).
 
@@ -40,7 +40,7 @@ for the study that shows they matter):
 2. the Coriolis corrections: the thesis writes ``y_i' - (w_z P_x + w_x P_z)`` and
    ``x_i' - (w_y P_z + w_z P_y)``; the components of ``w x P`` are
    ``(w x P)_y = w_z P_x - w_x P_z`` and ``(w x P)_x = w_y P_z - w_z P_y``;
-3. eq. 2.9's ``+ mu (r_L + x)/R^3`` (MODEL.md) does not recur: eq. 2.40 prints the minus sign.
+3. eq. 2.9's ``+ mu (r_L + x)/R^3`` (docs/model.md) does not recur: eq. 2.40 prints the minus sign.
    The ``x_ij`` subscripts of eqs. 2.40-2.42 are read as ``x_i``. ``P_T^i`` is the point's
    offset in ``L``, i.e. ``D P_i`` with ``P_i`` the (constant) body-frame coordinates.
 

@@ -20,7 +20,7 @@ with (``c = cos nt``, ``S = sin nt``)
 which is the thesis's eqs. 2.33, 2.35 and 2.36 with the impulses set to zero. (The
 thesis's Laplace form, eq. 2.34, prints ``- 2 n x0`` in the second right-hand entry;
 ``+ 2 n x0`` is what its own time-domain solution 2.36 needs.) The equations are the
-linearization of the nonlinear model of MODEL.md about ``rho = 0`` on a circular orbit.
+linearization of the nonlinear model of docs/model.md about ``rho = 0`` on a circular orbit.
 Every function takes leading batch axes (``...``) and keeps them.
 """
 

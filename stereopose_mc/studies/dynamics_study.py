@@ -4,7 +4,7 @@ Three studies on one scenario (its leader orbit, initial relative state, inertia
 feature points):
 
 (a) **Nonlinear vs Clohessy-Wiltshire** (figs 2.5-2.7). The c.m.'s initial relative state
-    ``[rho_0, rho_0']`` is propagated with the nonlinear model of MODEL.md (DOP853) and with
+    ``[rho_0, rho_0']`` is propagated with the nonlinear model of docs/model.md (DOP853) and with
     the closed-form CW solution at ``n = sqrt(mu / a^3)`` (thesis eq. 2.31), on a circular
     orbit (the scenario's ``a`` with ``e = 0``) and on the scenario's (eccentric) orbit.
     On the circular orbit the difference is the CW linearization error, quadratic in the
@@ -99,7 +99,7 @@ def integrate(rhs: Rhs, y0: Array, t: Array, orbit: Orbit, rtol: float, **kw) ->
 
 
 def translation_rhs(y: Array, r_L, nu_dot, nu_ddot, mu: float) -> Array:
-    """``[rho', g(rho, rho')]`` of the nonlinear c.m. model (MODEL.md)."""
+    """``[rho', g(rho, rho')]`` of the nonlinear c.m. model (docs/model.md)."""
     acc = translational_acceleration(y[..., :3], y[..., 3:], r_L, nu_dot, nu_ddot, mu)
     return np.concatenate([y[..., 3:], acc], axis=-1)
 

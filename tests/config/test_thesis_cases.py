@@ -71,7 +71,7 @@ def test_same_points_and_filters_as_case_b(case, scenarios):
 
 
 def test_k_from_the_chosen_inertia(scenarios):
-    # k1 = ln(Ix/Iy), k2 = ln(Iy/Iz) (MODEL.md), as stated in the files' comment block
+    # k1 = ln(Ix/Iy), k2 = ln(Iy/Iz) (docs/model.md), as stated in the files' comment block
     x0 = setup_of(scenarios["B"]).x0
     k = x0[st.k_slice(5)]
     assert k == pytest.approx([math.log(0.83 / 1.0), math.log(1.0 / 1.083)], rel=1e-12)
