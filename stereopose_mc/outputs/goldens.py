@@ -8,12 +8,15 @@ and compares each with its golden (``outputs.compare``), printing the Markdown d
 the cells out of tolerance and exiting 1 if there is any.
 
 The runs are deterministic (per-trial SeedSequence children, results independent of
-``--jobs`` and chunking), so the goldens are compared with a tight relative tolerance
-(:data:`RTOL`); it only absorbs last-digit differences of floating-point libraries
-(BLAS, libm) between machines. A real change of the numerics moves cells by far more.
+``--jobs`` and chunking): on one machine a rerun gives the same bytes. Across machines the
+BLAS kernels differ (OpenBLAS picks them by CPU), and the IEKF's iterations amplify their
+last-digit differences: cases C and D move by up to 1e-4 relative between an AMD EPYC
+(OpenBLAS's Haswell kernels) and an Intel Xeon (SkylakeX kernels). :data:`RTOL` absorbs
+that and nothing more; a real change of the numerics moves cells by far more, and the
+lost counts must match exactly.
 
     python -m stereopose_mc.outputs.goldens refresh [--cases BD] [--jobs 2]
-    python -m stereopose_mc.outputs.goldens check   [--cases BD] [--jobs 2] [--rtol 1e-6]
+    python -m stereopose_mc.outputs.goldens check   [--cases BD] [--jobs 2] [--rtol 1e-3]
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ CONFIG_DIR = ROOT / "configs"
 GOLDEN_DIR = ROOT / "tests" / "regression" / "goldens"
 CASES = "ABCDEF"
 CI_TRIALS = 20
-RTOL = 1e-6
+RTOL = 1e-3  # cross-machine BLAS round-off amplified by the IEKF: up to 1e-4 measured (docs/outputs.md)
 ATOL = 0.0
 
 
