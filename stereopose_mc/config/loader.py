@@ -28,15 +28,15 @@ import yaml
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from ..core import quaternion as qt
-from .schema import EKFConfig, IEKFConfig, MEKFConfig, MeasurementsConfig, Scenario, UKFConfig, Vec3
+from .filters import FILTER_CONFIGS, tag
+from .schema import MeasurementsConfig, Scenario, Vec3
 
 Loc = tuple[Any, ...]
 
-#: The filter types a ``filters`` entry may name (the discriminator tags of the union).
-FILTER_MODELS: dict[str, type[BaseModel]] = {
-    typing.get_args(m.model_fields["type"].annotation)[0]: m for m in (IEKFConfig, EKFConfig, MEKFConfig, UKFConfig)
-}
-FILTER_TYPES: tuple[str, ...] = tuple(FILTER_MODELS)
+
+def filter_types() -> tuple[str, ...]:
+    """The filter types a ``filters`` entry may name (the discriminator tags of the union, in its order)."""
+    return tuple(tag(m) for m in FILTER_CONFIGS)
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,7 @@ def clean_loc(loc: Loc) -> Loc:
     """Drop the discriminator tag pydantic inserts after ``filters.K`` (``filters.0.iekf.x`` -> ``filters.0.x``)."""
     out: list[Any] = []
     for i, p in enumerate(loc):
-        if i == 2 and loc[0] == "filters" and isinstance(loc[1], int) and p in FILTER_TYPES:
+        if i == 2 and loc[0] == "filters" and isinstance(loc[1], int) and p in filter_types():
             continue
         out.append(p)
     return tuple(out)
@@ -273,7 +273,7 @@ def _short(value: Any) -> str:
 def error_message(err: dict[str, Any], loc: Loc, data: Any) -> tuple[Loc, str]:
     """A one-line message (and possibly a refined location) for one pydantic error."""
     kind, msg, value = err["type"], err["msg"], err.get("input")
-    tags = ", ".join(repr(t) for t in FILTER_TYPES)
+    tags = ", ".join(repr(t) for t in filter_types())
     if kind == "extra_forbidden":
         close = difflib.get_close_matches(str(loc[-1]), _known_keys(loc[:-1], data), n=1, cutoff=0.6)
         return loc, "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")

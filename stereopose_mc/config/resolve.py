@@ -11,8 +11,8 @@ from ..core import state as st
 from ..core.orbit import Orbit
 from ..core.perturbed import Perturbations
 from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
-from .schema import (CovarianceConfig, EKFConfig, IEKFConfig, MEKFConfig, ProcessNoiseConfig, PseudoMeasurementConfig,
-                     Scenario, UKFConfig)  # fmt: skip
+from .filters import FilterBase, FilterSetup
+from .schema import CovarianceConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
 
 DEG = np.pi / 180.0
 Array = NDArray[np.float64]
@@ -141,50 +141,14 @@ def _alpha_options(p: PseudoMeasurementConfig, dt: float) -> dict:
     )
 
 
-@dataclass(frozen=True)
-class FilterSetup:
-    """A filter's own tuning in SI: R's standard deviations and Q's diagonal."""
-
-    label: str
-    kind: str  # "ekf" | "iekf" | "mekf" | "ukf"
-    sigma_image: float
-    sigma_flow: float
-    sigma_disparity: float
-    sigma_alpha: float
-    Q_diag: Array
-    transition: str
-    taylor_order: int
-    substeps: int
-    tolerance: float = 0.01
-    max_iterations: int = 1
-    step_control: str = "none"
-    stopping: str = "mahalanobis"
-    gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
-    first_update: str = "ekf"  # EKF only: "iterated" runs the IEKF at the first update
-    ukf_alpha: float = 0.5  # UKF sigma-point scaling (Merwe): alpha, beta, kappa
-    ukf_beta: float = 2.0
-    ukf_kappa: float = 0.0
-    error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
-
-
-def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup) -> FilterSetup:
+def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
+    """A filter entry in SI: the fields every filter shares, resolved here, and its type's own (the config
+    model's ``setup``, config/filters.py)."""
     r = f.measurement_noise
     if s.sensor.pixels is not None:  # noise given in pixels -> normalized units (config/sensor.py)
         px = {"image_sigma": r.image_sigma_px, "flow_sigma": r.flow_sigma_pxps}
         r = r.model_copy(update={k: v / s.sensor.pixels.f_px for k, v in px.items() if v is not None})
-    extra = {}
-    if isinstance(f, EKFConfig):
-        extra = dict(first_update=f.first_update)
-    if isinstance(f, MEKFConfig):
-        extra = dict(tolerance=f.tolerance, max_iterations=f.max_iterations if f.iterated else 1,
-                     step_control=f.step_control, stopping=f.stopping)  # fmt: skip
-    if isinstance(f, UKFConfig):
-        extra = dict(ukf_alpha=f.alpha, ukf_beta=f.beta, ukf_kappa=f.kappa, first_update=f.first_update)
-    if isinstance(f, IEKFConfig):
-        extra = dict(
-            tolerance=f.tolerance, max_iterations=f.max_iterations, step_control=f.step_control, stopping=f.stopping
-        )
-    return FilterSetup(
+    return f.setup(
         label=f.label,
         kind=f.type,
         sigma_image=r.image_sigma if r.image_sigma is not None else s.sigma_image,
@@ -199,5 +163,4 @@ def filter_setup_of(f: EKFConfig | IEKFConfig | MEKFConfig | UKFConfig, s: Setup
         substeps=f.integration_substeps,
         gate_probability=None if f.gating is None else f.gating.probability,
         error_state=f.error_state,
-        **extra,
     )

@@ -12,11 +12,13 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from . import filters as _filters
+from .base import NonNeg, Pos, Vec3, _Model
+from .filters import (EKFConfig, FilterConfig, FilterMeasurementNoise, GatingConfig, IEKFConfig, MEKFConfig,
+                      ProcessNoiseConfig, UKFConfig)  # noqa: F401 (the scenario's filter entries: config/filters.py)
+
 SCHEMA_VERSION = 1
 
-Pos = Annotated[float, Field(gt=0)]
-NonNeg = Annotated[float, Field(ge=0)]
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 def _normalized(v: list[float], what: str) -> list[float]:
@@ -25,10 +27,6 @@ def _normalized(v: list[float], what: str) -> list[float]:
     if not np.isfinite(n) or n < 1e-12:
         raise ValueError(f"{what} must be non-zero")
     return [float(c) / n for c in v]
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True, allow_inf_nan=False)
 
 
 class TimeConfig(_Model):
@@ -287,122 +285,6 @@ class CovarianceConfig(_Model):
     k: NonNeg
 
 
-class FilterMeasurementNoise(_Model):
-    """The filter's own R, per measurement type (standard deviations); default: the truth's."""
-
-    image_sigma: Pos | None = None
-    flow_sigma: Pos | None = None
-    disparity_sigma: Pos | None = None
-    angular_acceleration_sigma_radps2: Pos | None = None
-    image_sigma_px: Pos | None = Field(default=None, description="σ for u, v in pixels (pixel camera); replaces image_sigma")
-    flow_sigma_pxps: Pos | None = Field(
-        default=None, description="σ for the image velocities in px/s (pixel camera); replaces flow_sigma"
-    )
-
-
-class ProcessNoiseConfig(_Model):
-    """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
-
-    rho_m2: NonNeg = 1e-8
-    rho_dot_m2ps2: NonNeg = 1e-12
-    omega_deg2ps2: NonNeg = 1e-10
-    q: NonNeg = 3e-11
-    feature_points_m2: NonNeg = 3e-10
-    k: NonNeg = 1e-10
-
-
-class GatingConfig(_Model):
-    """Per-feature chi-square gate on the innovation before the update (docs/filters.md)."""
-
-    probability: Annotated[float, Field(gt=0, lt=1)] = Field(
-        default=0.999, description="probability that a correct feature passes the gate"
-    )
-
-
-class _FilterBase(_Model):
-    name: str | None = Field(default=None, description="label in outputs; default the type")
-    gating: GatingConfig | None = Field(
-        default=None,
-        description="`{probability: 0.999}`: per-feature chi-square gate on the innovation before the update (the "
-        "IEKF at its first iterate); null = no gate; not for the UKF, which has none. See docs/filters.md",
-    )
-    measurement_noise: FilterMeasurementNoise = FilterMeasurementNoise()
-    process_noise: ProcessNoiseConfig = ProcessNoiseConfig()
-    transition: Literal["expm", "taylor"] = "taylor"
-    taylor_order: Annotated[int, Field(ge=1, le=12)] = 4
-    integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 1
-
-    @property
-    def label(self) -> str:
-        return self.name or self.type  # type: ignore[attr-defined]
-
-
-_ERROR_STATE_DOC = (
-    "the coordinates the filter's covariance and iterations live in (docs/filters.md, Error state): 'aligned' "
-    "(centroid of the points in L, body-frame rotation, points in the rotated body frame: the near-symmetries are "
-    "straight lines, so the filter stays consistent), 'attitude' (3-parameter attitude error in L, additive "
-    "elsewhere) or 'full' (the thesis: additive on the whole state, quaternion covariance)"
-)
-
-
-class EKFConfig(_FilterBase):
-    type: Literal["ekf"]
-    error_state: Literal["aligned", "full", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
-    first_update: Literal["ekf", "iterated"] = Field(
-        default="ekf",
-        description="'iterated': the first update (t = dt) runs the IEKF's iterations (line search, Mahalanobis "
-        "stopping, tolerance 0.01, at most 10), the later ones are plain EKF updates",
-    )
-
-
-class _GaussNewtonBase(_FilterBase):
-    """The iterated update's knobs (docs/filters.md, IEKF)."""
-
-    tolerance: Pos = 0.01
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 10
-    step_control: Literal["line_search", "levenberg_marquardt", "none"] = "line_search"
-    stopping: Literal["mahalanobis", "prior", "scaled", "raw"] = "mahalanobis"
-
-
-class IEKFConfig(_GaussNewtonBase):
-    type: Literal["iekf"]
-    error_state: Literal["aligned", "full", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
-
-
-class MEKFConfig(_GaussNewtonBase):
-    """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error."""
-
-    type: Literal["mekf"]
-    error_state: Literal["aligned", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
-    iterated: bool = Field(default=True, description="run the IEKF's Gauss-Newton iterations in the update")
-
-
-class UKFConfig(_FilterBase):
-    """Unscented filter with multiplicative attitude (docs/filters.md); scaled sigma points (Merwe)."""
-
-    type: Literal["ukf"]
-    error_state: Literal["aligned", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
-    alpha: Annotated[float, Field(gt=0, le=1)] = 0.5
-    beta: NonNeg = 2.0
-    kappa: float = 0.0
-    first_update: Literal["ukf", "iterated"] = Field(
-        default="ukf",
-        description="'iterated': the first update (t = dt) is the MEKF's iterated update (line search, Mahalanobis "
-        "stopping, tolerance 0.01, at most 10 iterations), the later ones unscented",
-    )
-
-    @field_validator("gating")
-    @classmethod
-    def _no_gate(cls, v):
-        if v is not None:  # it used to be accepted and ignored
-            raise ValueError("the UKF has no innovation gate (its update is unscented); remove 'gating', or use "
-                             "type iekf, ekf or mekf for a gated filter")  # fmt: skip
-        return v
-
-
-FilterConfig = Annotated[Union[IEKFConfig, EKFConfig, MEKFConfig, UKFConfig], Field(discriminator="type")]
-
-
 class DivergenceConfig(_Model):
     """Bounds on the estimation error beyond which a trial is marked diverged."""
 
@@ -593,3 +475,12 @@ class Scenario(_Model):
         if len(set(labels)) != len(labels):
             raise ValueError(f"filter labels must be unique (got {labels}); give each a 'name'")
         return v
+
+
+def _rebuild_filters(union) -> None:
+    """``Scenario.filters`` over the current filter types (``config.filters.register``)."""
+    Scenario.model_fields["filters"].annotation = list[union]
+    Scenario.model_rebuild(force=True)
+
+
+_filters._REBUILD.append(_rebuild_filters)

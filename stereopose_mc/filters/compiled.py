@@ -42,28 +42,24 @@ from ..core.kernels import model as km
 from ..core.kernels import update as ku
 from ..core.kernels import writable as _writable
 from ..core.orbit import leader_kinematics
-from . import estimators, relnav, ukf
+from . import estimators, registry, relnav, ukf
 
 Array = NDArray[np.float64]
-# filter types with compiled kernels (the UKF: its own path; its iterated first update on the update kernels)
-COMPILED_KINDS = ("ekf", "iekf", "mekf", "ukf")
+CHART_CODES = {"full": 0, "aligned": 1, "attitude": 2}  # the kernels' ``chart`` argument
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
 # 2 to this many trials the kernels leave to numpy's update (their P- or A does not factorize) are handed to the
 # caller (PartialUpdateError, tried=False), which updates them one by one (mc.trial._left_to_numpy) with no batch
 # attempt first: such trials are diverging, and a batch attempt that fails on one of them is a call spent for nothing
 # (in case B's full-state EKF every one failed: 8 numpy calls per run instead of 10)
 ONE_BY_ONE = 16
-FIRST_ITERATED = dict(tol=0.01, max_iter=10, control="line_search", stopping="mahalanobis")  # relnav.kalman_update
 
 
 def chart_code(fs: FilterSetup) -> int | None:
-    """The kernels' ``chart`` of a filter: 0 the full state, 1 the aligned error state, 2 the attitude error
-    state, None: no kernels."""
-    if fs.kind not in COMPILED_KINDS:
+    """The kernels' ``chart`` of a filter (its registry entry's chart): 0 the full state, 1 the aligned error state,
+    2 the attitude error state, None: its type has no compiled step."""
+    if registry.of(fs).compiled is None:
         return None
-    if fs.kind in ("mekf", "ukf"):  # always an error state (the attitude chart for anything but "aligned")
-        return 1 if fs.error_state == "aligned" else 2
-    return {"full": 0, "aligned": 1, "attitude": 2}.get(fs.error_state)
+    return CHART_CODES[registry.chart(fs)]
 
 
 @functools.lru_cache(maxsize=4096)
@@ -103,12 +99,18 @@ def transition_block(x: Array, t: float, fs: FilterSetup, setup: Setup, lk=None)
 
 
 def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
-    """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``)."""
-    if fs.kind == "ukf":  # its sigma points through the compiled RK4 and chart
-        return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup), charts=_charts(fs))
+    """``(x-, P-)`` at ``t + dt`` by the compiled step of ``fs``'s type (``registry.steps``; numpy's without one)."""
+    return registry.steps(fs, "compiled").predict(x, P, t, fs, setup)
+
+
+def ukf_predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
+    """The UKF's prediction, its sigma points through the compiled RK4 and chart."""
+    return ukf.predict(x, P, t, fs, setup, propagate=_propagator(t, fs, setup), charts=_charts(fs))
+
+
+def kernel_predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tuple[Array, Array]:
+    """``(x-, P-)`` at ``t + dt`` from the posterior ``(x, P)`` at ``t`` (``relnav.predict``, ``mekf.predict``)."""
     chart = chart_code(fs)
-    if chart is None:  # no kernels for this filter type
-        return estimators.predict(x, P, t, fs, setup)
     x, P = _writable(x), _writable(P)
     B, n = x.shape
     h = setup.dt / fs.substeps
@@ -225,22 +227,35 @@ def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd:
 
 def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> dict | None:
     """The iterated update's knobs at this step (``relnav.kalman_update``), or None for the EKF update."""
-    if not relnav.iterated_at(fs, setup, step):
+    it = fs.iteration(relnav.first_update(setup, step))
+    if it is None:
         return None
-    if fs.kind in ("ekf", "ukf"):  # first_update: iterated
-        return FIRST_ITERATED
-    return dict(tol=fs.tolerance, max_iter=fs.max_iterations, control=fs.step_control, stopping=fs.stopping)
+    return dict(tol=it.tolerance, max_iter=it.max_iterations, control=it.step_control, stopping=it.stopping)
 
 
 def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
            x_true: Array | None = None):  # fmt: skip
-    """The measurement update of ``estimators.update``: compiled where ``supported``, else numpy.
+    """The measurement update of ``estimators.update`` by the compiled step of ``fs``'s type (``registry.steps``).
 
     ``x_true``: the true states of the step's whole batch ``(B, n)`` (or one ``(n,)`` shared by all), indexed by
     ``rows`` as ``step.y``: the compiled update then evaluates each posterior's NEES (``GatedUpdate.nees``, the
     engine's consistency record: ``mc.trial``); None, or a filter without kernels: not evaluated here."""
-    if fs.kind == "ukf" and not relnav.iterated_at(fs, setup, step):  # its sigma points through the compiled h, chart
-        return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step), charts=_charts(fs))
+    return registry.steps(fs, "compiled").update(x, P, step, rows, fs, setup, x_true=x_true)
+
+
+def ukf_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
+               x_true: Array | None = None):  # fmt: skip
+    """The UKF's update, its sigma points through the compiled ``h`` and chart; its iterated first update on the
+    update kernels (``kernel_update``)."""
+    if relnav.iterated_at(fs, setup, step):
+        return kernel_update(x, P, step, rows, fs, setup, x_true)
+    return ukf.update(x, P, step, rows, fs, setup, measure_h=_measurer(setup, step), charts=_charts(fs))
+
+
+def kernel_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup,
+                  x_true: Array | None = None):  # fmt: skip
+    """The update on the kernels of ``core.kernels.update`` where ``supported``, else numpy's (``x_true`` as in
+    ``update``)."""
     hit = _CONSTANTS.get(("supported", id(fs)))
     if hit is None or hit[0] is not fs:
         hit = _CONSTANTS[("supported", id(fs))] = (fs, None, supported(fs))
@@ -406,5 +421,5 @@ def supported(fs: FilterSetup) -> bool:
     stopping test, and the UKF's iterated first update (its other updates are ``ukf.update`` on the compiled model)."""
     if chart_code(fs) is None:
         return False
-    iterated = fs.kind == "iekf" or (fs.kind == "mekf" and fs.max_iterations > 1)
-    return not iterated or (fs.step_control in ku.CONTROL and fs.stopping in ku.STOPPING)
+    it = fs.iteration(True)  # the knobs of its iterated updates (None: it has none)
+    return it is None or (it.step_control in ku.CONTROL and it.stopping in ku.STOPPING)

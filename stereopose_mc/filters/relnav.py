@@ -163,22 +163,21 @@ def gated_model(x: Array, P: Array, measure, step: StepMeasurement, rows: Array,
     return measure, R, y, rejected, used
 
 
-def iterated_at(fs: FilterSetup, setup: Setup, step: StepMeasurement) -> bool:
-    """True when this update runs the Gauss-Newton iterations.
+def first_update(setup: Setup, step: StepMeasurement) -> bool:
+    """True at the first update (``t = dt``)."""
+    return step.t <= setup.dt * (1 + 1e-9)
 
-    The IEKF always; the MEKF when ``iterated``; the EKF and the UKF only at the first
-    update with ``first_update: iterated`` (then with the IEKF's defaults).
-    """
-    if fs.kind in ("ekf", "ukf"):
-        return fs.first_update == "iterated" and step.t <= setup.dt * (1 + 1e-9)
-    return fs.kind == "iekf" or fs.max_iterations > 1
+
+def iterated_at(fs: FilterSetup, setup: Setup, step: StepMeasurement) -> bool:
+    """True when this update runs the Gauss-Newton iterations (``fs.iteration``: the IEKF always; the MEKF when
+    ``iterated``; the EKF and the UKF only at the first update with ``first_update: iterated``)."""
+    return fs.iteration(first_update(setup, step)) is not None
 
 
 def kalman_update(x, P, y, measure, R, rows, fs: FilterSetup, setup: Setup, step: StepMeasurement) -> kf.Update:
     """The EKF or iterated (Gauss-Newton) update of ``core.kalman`` that ``fs`` asks for at this step."""
-    if not iterated_at(fs, setup, step):
+    it = fs.iteration(first_update(setup, step))
+    if it is None:
         return kf.ekf_update(x, P, y, measure, R, rows)
-    if fs.kind in ("ekf", "ukf"):  # first_update: iterated, with the IEKF's defaults
-        return kf.iekf_update(x, P, y, measure, R, rows, tol=0.01, max_iter=10, step_control="line_search")
-    return kf.iekf_update(x, P, y, measure, R, rows, tol=fs.tolerance, max_iter=fs.max_iterations,
-                          step_control=fs.step_control, stopping=fs.stopping)  # fmt: skip
+    return kf.iekf_update(x, P, y, measure, R, rows, tol=it.tolerance, max_iter=it.max_iterations,
+                          step_control=it.step_control, stopping=it.stopping)  # fmt: skip

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config.resolve import FilterSetup, Setup
+from ..config.filters import UKFSetup
+from ..config.resolve import Setup
 from ..core import dynamics
 from ..core import kalman as kf
 from ..core import unscented as ut
@@ -21,7 +22,7 @@ from . import gating, mekf, relnav
 from .mekf import error_process_noise
 
 
-def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None, charts=None):
+def predict(x, P, t, fs: UKFSetup, setup: Setup, propagate=None, charts=None):
     """``(x-, P-)`` with ``P`` the error-state covariance.
 
     ``propagate(states (M, n))``: the RK4 of the step with the quaternion renormalized, for
@@ -41,11 +42,11 @@ def predict(x, P, t, fs: FilterSetup, setup: Setup, propagate=None, charts=None)
     x_c = propagate(x)
     ch = mekf.chart_of(fs)
     chart, local = charts or (ch.chart, ch.local)
-    return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag, ch), fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa,
+    return ut.predict(x, P, f, error_process_noise(x_c, fs.Q_diag, ch), fs.alpha, fs.beta, fs.kappa,
                       chart=chart, local=local)  # fmt: skip
 
 
-def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Setup, measure_h=None,
+def update(x, P, step: relnav.StepMeasurement, rows, fs: UKFSetup, setup: Setup, measure_h=None,
            charts=None) -> kf.Update:  # fmt: skip
     """The unscented update (or, at an iterated first update, the error-state filter's iterated one).
 
@@ -81,5 +82,5 @@ def update(x, P, step: relnav.StepMeasurement, rows, fs: FilterSetup, setup: Set
         return model(states, rows[idx], False)[0]
 
     chart = charts[0] if charts else mekf.chart_of(fs).chart
-    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.ukf_alpha, fs.ukf_beta, fs.ukf_kappa, chart=chart)
+    x_new, P_new, nu, nis = ut.update(x, P, step.y[rows], h, R, fs.alpha, fs.beta, fs.kappa, chart=chart)
     return relnav.GatedUpdate(x_new, P_new, nu, nis, np.ones(B, int), np.ones(B, bool), np.zeros(B, int), used)

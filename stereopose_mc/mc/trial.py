@@ -32,7 +32,7 @@ from ..core import errorstate as es
 from ..core import quaternion as qt
 from ..core import state as st
 from ..core import kalman as kf
-from ..filters import estimators, relnav
+from ..filters import estimators, registry, relnav
 from ..filters.initialization import measurement_start
 from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
@@ -197,6 +197,7 @@ def run_filter(
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     P = estimators.initial_covariance(x, P, fs)
+    chart = registry.chart(fs)  # the chart of its covariance, in which its NEES are evaluated
     err[:, 0] = errors_of(x, true_state(truth.x, 0, np.arange(B)), kernels)
     # every NEES of every step in one array, in the compiled update's column order (``_nees_keys``), stored at each
     # step by one assignment; ``nees`` and ``parts`` (``FilterRun``'s) are its columns
@@ -204,7 +205,7 @@ def run_filter(
     nees_all = np.full((B, K + 1, len(keys)), np.nan)
     nees = nees_all[..., keys.index("nees")]
     parts = {k: nees_all[..., keys.index(k)] for k in es.nees_dof(n) if k != "nees"}
-    _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), fs.error_state, kernels)
+    _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -248,7 +249,7 @@ def run_filter(
             u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, update)
             e = errors_of(u.x, x_true_k, kernels)
             try:
-                v, pd = _posterior_nees(u, x_true_k, fs.error_state, kernels)
+                v, pd = _posterior_nees(u, x_true_k, chart, kernels)
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad = _check(u.x, u.P, e, bounds, pd)

@@ -37,6 +37,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from scipy.stats import chi2
 
+from ..filters.registry import thesis_role
 from ..mc.trial import ERROR_NAMES
 from . import rundir, tables
 from .tables import ERROR_LABELS
@@ -385,8 +386,8 @@ def ekf_iekf_pair(filters: list[str], types: dict[str, str]) -> tuple[str, str] 
     only filter of each type; ``None`` when there is no such pair."""
     if "ekf" in filters and "iekf" in filters:
         return "ekf", "iekf"
-    e = [f for f in filters if types.get(f) == "ekf"]
-    i = [f for f in filters if types.get(f) == "iekf"]
+    e = [f for f in filters if thesis_role(types.get(f)) == "ekf"]
+    i = [f for f in filters if thesis_role(types.get(f)) == "iekf"]
     return (e[0], i[0]) if len(e) == 1 and len(i) == 1 else None
 
 

@@ -27,6 +27,7 @@ import yaml
 
 from .. import __version__
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
+from ..filters.registry import thesis_role
 from ..mc.trial import ERROR_NAMES
 from . import figures as figs
 from . import rundir, sensitivity_report, tables
@@ -479,14 +480,14 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
         n, nd = int(g["trials"].iloc[0]), int(g["diverged"].iloc[0])
         kind = types.get(label, "?")
         body.append(f"<h3>{esc(label)} ({esc(kind)}): {n - nd} of {n} trials converged, {nd} diverged</h3>")
-        if case is not None and kind == "iekf":
+        if case is not None and thesis_role(kind) == "iekf":
             body.append(thesis_side(pt, label, case))
         else:
             body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "converged"), caption="converged trials"))
         if nd:
             body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "all"),
                                    caption="all trials (a diverged trial counts as +inf)"))  # fmt: skip
-    if case is not None and not any(types.get(f) == "iekf" for f in data.filters):
+    if case is not None and not any(thesis_role(types.get(f)) == "iekf" for f in data.filters):
         th = thesis_percentiles(case)
         rows = [[fmt_num(r["percentile"])] + _cells([r[n] for n in ERROR_NAMES]) for r in th.to_dict("records")]
         cap = f"thesis Table {THESIS_TABLE_NUMBER[case]}: case {case}, IEKF, 100 trials"

@@ -401,8 +401,9 @@ def _aligned_step(kind, stopping="mahalanobis", masked=False, B=5, k=5, control=
     more = {} if N is None else {"target": {"feature_points_m": sphere_points(N, 1.5).tolist()}}
     scn, setup, truth, exact, fss = _prepared(error_state="full" if full else "aligned", **SHORT, **more)
     loose = dict(sigma_image=1e-3, sigma_flow=1e-3, sigma_alpha=1e-4)
+    knobs = dict(stopping=stopping, step_control=control) if kind == "iekf" else {}  # the EKF's setup has none
     fs = dataclasses.replace(fss[0] if kind == "iekf" else fss[1], **loose, gate_probability=0.99 if masked else None,
-                             stopping=stopping, step_control=control)  # fmt: skip
+                             **knobs)  # fmt: skip
     rng = np.random.default_rng(4)
     ne = setup.x0.size - (0 if full else 1)
     A = 0.02 * rng.normal(size=(B, ne, ne))
