@@ -39,13 +39,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import errorstate as es
+from . import layout as lay
 from . import quaternion as qt
 from . import state as st
 from .jacobians import dcm_derivative
 
 Array = NDArray[np.float64]
 
-DELTA = slice(9, 12)  # the body-frame rotation block of the aligned error state
+E_C = slice(lay.E_RHO, lay.E_RHO + lay.VEC)  # the points' centroid in L
+E_CDOT = slice(lay.E_RHO_DOT, lay.E_RHO_DOT + lay.VEC)  # its velocity
+E_OMEGA = slice(lay.E_OMEGA, lay.E_OMEGA + lay.VEC)
+DELTA = es.ATT  # the body-frame rotation block of the aligned error state (the attitude chart's a)
 
 
 def left_matrix(p: Array) -> Array:
@@ -64,8 +68,7 @@ def left_matrix(p: Array) -> Array:
 
 def _points(x: Array) -> Array:
     """The feature points ``(..., N, 3)`` of states ``x``."""
-    N = st.n_points(x.shape[-1])
-    return x[..., 13 : 13 + 3 * N].reshape(x.shape[:-1] + (N, 3))
+    return st.points(x)
 
 
 def centroid(x: Array) -> tuple[Array, Array, Array]:
@@ -84,13 +87,13 @@ def chart(x_ref: Array, e: Array) -> Array:
     c_ref, cd_ref, _ = centroid(x_ref)
     dq = es.small_quaternion(e[..., DELTA])
     x[..., st.QUAT] = qt.multiply(x_ref[..., st.QUAT], dq)
-    u = _points(x_ref) + e[..., 12 : 12 + 3 * N].reshape(shape + (N, 3))
-    x[..., 13 : 13 + 3 * N] = (u @ qt.dcm(dq)).reshape(shape + (3 * N,))  # rows u_i^T R = (R^T u_i)^T
-    x[..., st.OMEGA] = x_ref[..., st.OMEGA] + e[..., st.OMEGA]
-    x[..., 13 + 3 * N :] = x_ref[..., 13 + 3 * N :] + e[..., 12 + 3 * N :]
+    u = _points(x_ref) + e[..., es.points_slice(N)].reshape(shape + (N, 3))
+    x[..., st.points_slice(N)] = (u @ qt.dcm(dq)).reshape(shape + (3 * N,))  # rows u_i^T R = (R^T u_i)^T
+    x[..., st.OMEGA] = x_ref[..., st.OMEGA] + e[..., E_OMEGA]
+    x[..., st.k_slice(N)] = x_ref[..., st.k_slice(N)] + e[..., es.k_slice(N)]
     v = qt.matvec(qt.dcm(x_ref[..., st.QUAT]), u.mean(axis=-2))
-    x[..., st.RHO] = c_ref + e[..., st.RHO] - v
-    x[..., st.RHO_DOT] = cd_ref + e[..., st.RHO_DOT] - qt.cross(x[..., st.OMEGA], v)
+    x[..., st.RHO] = c_ref + e[..., E_C] - v
+    x[..., st.RHO_DOT] = cd_ref + e[..., E_CDOT] - qt.cross(x[..., st.OMEGA], v)
     return x
 
 
@@ -106,13 +109,13 @@ def local(x_ref: Array, x: Array) -> Array:
     e[..., DELTA] = 2.0 * dq[..., 1:] / dq[..., :1]
     R = qt.dcm(dq)
     P = _points(x)
-    e[..., 12 : 12 + 3 * N] = (P @ np.swapaxes(R, -1, -2) - _points(x_ref)).reshape(shape + (3 * N,))
-    e[..., st.OMEGA] = x[..., st.OMEGA] - x_ref[..., st.OMEGA]
-    e[..., 12 + 3 * N :] = x[..., 13 + 3 * N :] - x_ref[..., 13 + 3 * N :]
+    e[..., es.points_slice(N)] = (P @ np.swapaxes(R, -1, -2) - _points(x_ref)).reshape(shape + (3 * N,))
+    e[..., E_OMEGA] = x[..., st.OMEGA] - x_ref[..., st.OMEGA]
+    e[..., es.k_slice(N)] = x[..., st.k_slice(N)] - x_ref[..., st.k_slice(N)]
     c_ref, cd_ref, _ = centroid(x_ref)
     c, cd, _ = centroid(x)
-    e[..., st.RHO] = c - c_ref
-    e[..., st.RHO_DOT] = cd - cd_ref
+    e[..., E_C] = c - c_ref
+    e[..., E_CDOT] = cd - cd_ref
     return e
 
 
@@ -137,25 +140,25 @@ def chart_jacobian(x_ref: Array, e: Array | None = None) -> Array:
     Sq = es.small_quaternion_jacobian(delta)  # (..., 4, 3)
     S[..., st.QUAT, DELTA] = left_matrix(x_ref[..., st.QUAT]) @ Sq
     R, dR = dcm_derivative(dq)  # dR[..., j] = dR/d dq_j
-    u = _points(x_ref) + e[..., 12 : 12 + 3 * N].reshape(shape + (N, 3))
+    u = _points(x_ref) + e[..., es.points_slice(N)].reshape(shape + (N, 3))
     Rt = np.swapaxes(R, -1, -2)
     D_ref = qt.dcm(x_ref[..., st.QUAT])
-    omega = x_ref[..., st.OMEGA] + e[..., st.OMEGA]
+    omega = x_ref[..., st.OMEGA] + e[..., E_OMEGA]
     v = qt.matvec(D_ref, u.mean(axis=-2))
     W = qt.skew(omega) @ D_ref / N
     for i in range(N):
-        r, c = slice(13 + 3 * i, 16 + 3 * i), slice(12 + 3 * i, 15 + 3 * i)
+        r, c = slice(lay.point(i), lay.point(i + 1)), slice(lay.e_point(i), lay.e_point(i + 1))
         S[..., r, c] = Rt
         # d (R^T u) / d dq_j = dR_j^T u: columns j of a 3 x 4 matrix
         dRtu = np.einsum("...jba,...b->...aj", dR, u[..., i, :])
         S[..., r, DELTA] = dRtu @ Sq
         S[..., st.RHO, c] = -D_ref / N
         S[..., st.RHO_DOT, c] = -W
-    S[..., st.RHO, st.RHO] = np.eye(3)
-    S[..., st.RHO_DOT, st.RHO_DOT] = np.eye(3)
-    S[..., st.RHO_DOT, st.OMEGA] = qt.skew(v)
-    S[..., st.OMEGA, st.OMEGA] = np.eye(3)
-    S[..., 13 + 3 * N :, 12 + 3 * N :] = np.eye(2)
+    S[..., st.RHO, E_C] = np.eye(3)
+    S[..., st.RHO_DOT, E_CDOT] = np.eye(3)
+    S[..., st.RHO_DOT, E_OMEGA] = qt.skew(v)
+    S[..., st.OMEGA, E_OMEGA] = np.eye(3)
+    S[..., st.k_slice(N), es.k_slice(N)] = np.eye(lay.K_SIZE)
     return S
 
 
@@ -180,18 +183,18 @@ def error_map(x_ref: Array) -> Array:
     Om = qt.skew(x_ref[..., st.OMEGA])
     T[..., DELTA, st.QUAT] = Xi
     for i in range(N):
-        r, c = slice(12 + 3 * i, 15 + 3 * i), slice(13 + 3 * i, 16 + 3 * i)
+        r, c = slice(lay.e_point(i), lay.e_point(i + 1)), slice(lay.point(i), lay.point(i + 1))
         T[..., r, c] = np.eye(3)
         T[..., r, st.QUAT] = -qt.skew(P[..., i, :]) @ Xi
-        T[..., st.RHO, c] = D / N
-        T[..., st.RHO_DOT, c] = Om @ D / N
-    T[..., st.RHO, st.RHO] = np.eye(3)
-    T[..., st.RHO, st.QUAT] = dv
-    T[..., st.RHO_DOT, st.RHO_DOT] = np.eye(3)
-    T[..., st.RHO_DOT, st.OMEGA] = -qt.skew(v)
-    T[..., st.RHO_DOT, st.QUAT] = Om @ dv
-    T[..., st.OMEGA, st.OMEGA] = np.eye(3)
-    T[..., 12 + 3 * N :, 13 + 3 * N :] = np.eye(2)
+        T[..., E_C, c] = D / N
+        T[..., E_CDOT, c] = Om @ D / N
+    T[..., E_C, st.RHO] = np.eye(3)
+    T[..., E_C, st.QUAT] = dv
+    T[..., E_CDOT, st.RHO_DOT] = np.eye(3)
+    T[..., E_CDOT, st.OMEGA] = -qt.skew(v)
+    T[..., E_CDOT, st.QUAT] = Om @ dv
+    T[..., E_OMEGA, st.OMEGA] = np.eye(3)
+    T[..., es.k_slice(N), st.k_slice(N)] = np.eye(lay.K_SIZE)
     return T
 
 
@@ -223,7 +226,7 @@ def gauge_complement(n: int) -> Array:
     """
     N = st.n_points(n)
     G = np.zeros((n - 1, 3))
-    G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1)) / np.sqrt(N)
+    G[es.points_slice(N)] = np.tile(np.eye(3), (N, 1)) / np.sqrt(N)
     Qf, _ = np.linalg.qr(G, mode="complete")
     return Qf[:, 3:]
 

@@ -31,11 +31,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from . import quaternion as qt
+from . import layout as lay
 from . import state as st
 
 Array = NDArray[np.float64]
 
-ATT = slice(9, 12)  # attitude block of the error state
+ATT = slice(lay.E_ROT, lay.E_ROT + lay.VEC)  # attitude block of the error state
+HEAD = slice(0, lay.QUAT)  # rho, rho_dot, omega: the same offsets in the state and the error state
 BLOCKS = ("rho", "rho_dot", "omega", "attitude", "feature_points", "k")
 GAUGE_DOF = 3
 BLOCK_PROBE_N = 16  # any valid state length (one feature point): the NEES names do not depend on N
@@ -48,15 +50,24 @@ def error_size(n: int) -> int:
 
 def error_blocks(n_points: int) -> dict[str, slice]:
     """Named blocks of the error state."""
-    p0 = 12
     return {
-        "rho": st.RHO,
-        "rho_dot": st.RHO_DOT,
-        "omega": st.OMEGA,
+        "rho": slice(lay.E_RHO, lay.E_RHO + lay.VEC),
+        "rho_dot": slice(lay.E_RHO_DOT, lay.E_RHO_DOT + lay.VEC),
+        "omega": slice(lay.E_OMEGA, lay.E_OMEGA + lay.VEC),
         "attitude": ATT,
-        "feature_points": slice(p0, p0 + 3 * n_points),
-        "k": slice(p0 + 3 * n_points, p0 + 3 * n_points + 2),
+        "feature_points": points_slice(n_points),
+        "k": k_slice(n_points),
     }
+
+
+def points_slice(n_points: int) -> slice:
+    """The feature points' block of the error state (either chart)."""
+    return slice(lay.E_POINTS, lay.e_point(n_points))
+
+
+def k_slice(n_points: int) -> slice:
+    """``e_k``'s block of the error state (either chart)."""
+    return slice(lay.e_point(n_points), lay.n_error(n_points))
 
 
 def nees_dof(n: int) -> dict[str, int]:
@@ -104,14 +115,14 @@ def small_quaternion_jacobian(a: Array) -> Array:
 
 
 def _split(x: Array) -> tuple[Array, Array]:
-    return np.concatenate([x[..., :9], x[..., 13:]], axis=-1), x[..., st.QUAT]
+    return np.concatenate([x[..., HEAD], x[..., lay.POINTS :]], axis=-1), x[..., st.QUAT]
 
 
 def chart(x_ref: Array, eps: Array) -> Array:
     """``x_ref [+] eps``: additive on every block, ``q = dq(a) (x) q_ref`` on the attitude."""
     x = np.empty(eps.shape[:-1] + (eps.shape[-1] + 1,))
-    x[..., :9] = x_ref[..., :9] + eps[..., :9]
-    x[..., 13:] = x_ref[..., 13:] + eps[..., 12:]
+    x[..., HEAD] = x_ref[..., HEAD] + eps[..., HEAD]
+    x[..., lay.POINTS :] = x_ref[..., lay.POINTS :] + eps[..., lay.E_POINTS :]
     x[..., st.QUAT] = qt.multiply(small_quaternion(eps[..., ATT]), x_ref[..., st.QUAT])
     return x
 
@@ -119,8 +130,8 @@ def chart(x_ref: Array, eps: Array) -> Array:
 def local(x_ref: Array, x: Array) -> Array:
     """Inverse of ``chart``: ``eps`` with ``x = x_ref [+] eps`` (``a = 2 vec(dq) / dq_0``)."""
     eps = np.empty(x.shape[:-1] + (x.shape[-1] - 1,))
-    eps[..., :9] = x[..., :9] - x_ref[..., :9]
-    eps[..., 12:] = x[..., 13:] - x_ref[..., 13:]
+    eps[..., HEAD] = x[..., HEAD] - x_ref[..., HEAD]
+    eps[..., lay.E_POINTS :] = x[..., lay.POINTS :] - x_ref[..., lay.POINTS :]
     dq = qt.multiply(x[..., st.QUAT], qt.conjugate(qt.normalize(x_ref[..., st.QUAT])))
     dq = dq / np.linalg.norm(x[..., st.QUAT], axis=-1, keepdims=True)
     eps[..., ATT] = 2.0 * dq[..., 1:] / dq[..., :1]
@@ -133,8 +144,8 @@ def chart_jacobian(x_ref: Array, eps: Array | None = None) -> Array:
     if eps is None:
         eps = np.zeros(x_ref.shape[:-1] + (n - 1,))
     S = np.zeros(eps.shape[:-1] + (n, n - 1))
-    S[..., :9, :9] = np.eye(9)
-    S[..., 13:, 12:] = np.eye(n - 13)
+    S[..., HEAD, HEAD] = np.eye(lay.QUAT)
+    S[..., lay.POINTS :, lay.E_POINTS :] = np.eye(n - lay.POINTS)
     S[..., st.QUAT, ATT] = right_matrix(x_ref[..., st.QUAT]) @ small_quaternion_jacobian(eps[..., ATT])
     return S
 
@@ -143,8 +154,8 @@ def error_map(x_ref: Array) -> Array:
     """``T = d eps / d x`` at ``x_ref`` (``..., n-1, n``): identity blocks and ``Xi(q_ref)``."""
     n = x_ref.shape[-1]
     T = np.zeros(x_ref.shape[:-1] + (n - 1, n))
-    T[..., :9, :9] = np.eye(9)
-    T[..., 12:, 13:] = np.eye(n - 13)
+    T[..., HEAD, HEAD] = np.eye(lay.QUAT)
+    T[..., lay.E_POINTS :, lay.POINTS :] = np.eye(n - lay.POINTS)
     T[..., ATT, st.QUAT] = attitude_map(x_ref[..., st.QUAT])
     return T
 
@@ -191,7 +202,7 @@ def gauge_act(x: Array, d: Array) -> Array:
     x[..., st.RHO_DOT] -= qt.cross(x[..., st.OMEGA], v)
     N = st.n_points(x.shape[-1])
     for i in range(N):
-        x[..., 13 + 3 * i : 16 + 3 * i] += d
+        x[..., lay.point(i) : lay.point(i + 1)] += d
     return x
 
 

@@ -1,4 +1,4 @@
-"""Layout of the relative state vector (13 + 3N + 2).
+"""The relative state vector (13 + 3N + 2): named blocks and conversions (offsets in ``core.layout``).
 
 ``x = [rho_0 (3), rho_dot_0 (3), omega (3), q (4), P_1 ... P_N (3N), k1, k2]``
 
@@ -14,38 +14,32 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from . import layout as lay
+
 Array = NDArray[np.float64]
 
-RHO = slice(0, 3)
-RHO_DOT = slice(3, 6)
-OMEGA = slice(6, 9)
-QUAT = slice(9, 13)
-POINTS0 = 13
-
-
-def size(n_points: int) -> int:
-    """Length of the state for ``n_points`` feature points."""
-    return 13 + 3 * n_points + 2
-
-
-def n_points(n: int) -> int:
-    """Number of feature points of a state of length ``n``."""
-    return (n - 15) // 3
+RHO = slice(lay.RHO, lay.RHO + lay.VEC)
+RHO_DOT = slice(lay.RHO_DOT, lay.RHO_DOT + lay.VEC)
+OMEGA = slice(lay.OMEGA, lay.OMEGA + lay.VEC)
+QUAT = slice(lay.QUAT, lay.QUAT + lay.QUAT_SIZE)
+POINTS0 = lay.POINTS
+size = lay.n_state  # length of the state for ``n_points`` feature points
+n_points = lay.n_points  # number of feature points of a state of length ``n``
 
 
 def points_slice(n_points: int) -> slice:
-    return slice(POINTS0, POINTS0 + 3 * n_points)
+    return slice(POINTS0, POINTS0 + lay.VEC * n_points)
 
 
 def k_slice(n_points: int) -> slice:
-    s = POINTS0 + 3 * n_points
-    return slice(s, s + 2)
+    s = POINTS0 + lay.VEC * n_points
+    return slice(s, s + lay.K_SIZE)
 
 
 def points(x: Array) -> Array:
     """Feature points ``(..., N, 3)`` of states ``x (..., n)``."""
     N = n_points(x.shape[-1])
-    return x[..., POINTS0 : POINTS0 + 3 * N].reshape(x.shape[:-1] + (N, 3))
+    return x[..., points_slice(N)].reshape(x.shape[:-1] + (N, lay.VEC))
 
 
 def inertia_diag(k: Array) -> Array:
@@ -74,11 +68,4 @@ def assemble(rho, rho_dot, omega, q, pts, k) -> Array:
 
 def block_index(n_points: int) -> dict[str, slice]:
     """Named blocks of the state, for Q and P0 assembly and reports."""
-    return {
-        "rho": RHO,
-        "rho_dot": RHO_DOT,
-        "omega": OMEGA,
-        "q": QUAT,
-        "feature_points": points_slice(n_points),
-        "k": k_slice(n_points),
-    }
+    return dict(zip(lay.NAMES, (RHO, RHO_DOT, OMEGA, QUAT, points_slice(n_points), k_slice(n_points))))

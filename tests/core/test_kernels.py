@@ -634,3 +634,32 @@ def test_kernel_cache_is_stamped_by_the_whole_package(tmp_path):
     assert _cache.package_stamp(tmp_path) not in (s0, s1)
     (tmp_path / "notes.txt").write_text("not a module")
     assert len(_cache.source_files(tmp_path)) == 3
+
+
+def test_kernel_cache_stamp_covers_the_core_modules_the_kernels_import(tmp_path):
+    """The kernels read the state layout's offsets from ``core/layout.py`` as compile-time constants: the cache stamp
+    covers every ``core`` module a kernel module imports (``from ..layout import``, ``from .. import x``), so editing
+    the layout, or a kernel starting to import another core module, recompiles the kernels."""
+    from pathlib import Path
+
+    from stereopose_mc.core import layout
+    from stereopose_mc.core.kernels import _cache
+
+    assert Path(layout.__file__).resolve() in _cache.core_dependencies()
+    kernels = tmp_path / "core" / "kernels"
+    kernels.mkdir(parents=True)
+    (kernels / "a.py").write_text("from ..layout import QUAT\n")
+    (tmp_path / "core" / "layout.py").write_text("QUAT = 9\n")
+    (tmp_path / "core" / "other.py").write_text("X = 1\n")
+    assert [p.name for p in _cache.core_dependencies(kernels)] == ["layout.py"]
+    s0 = _cache.package_stamp(kernels)
+    (tmp_path / "core" / "other.py").write_text("X = 2\n")  # not imported: the stamp stays
+    assert _cache.package_stamp(kernels) == s0
+    (tmp_path / "core" / "layout.py").write_text("QUAT = 12\n")  # the layout edited
+    s1 = _cache.package_stamp(kernels)
+    assert s1 != s0
+    (kernels / "b.py").write_text("from .. import other\n")  # a kernel module imports another core module
+    s2 = _cache.package_stamp(kernels)
+    assert [p.name for p in _cache.core_dependencies(kernels)] == ["layout.py", "other.py"]
+    (tmp_path / "core" / "other.py").write_text("X = 3\n")
+    assert _cache.package_stamp(kernels) not in (s0, s1, s2)

@@ -1,12 +1,13 @@
-"""Numba's on-disk cache for the kernels, keyed by the source of the whole package.
+"""Numba's on-disk cache for the kernels, keyed by the source of the whole package and the core modules it imports.
 
 Numba stamps a cached function with the hash of its own source file only. A kernel in one
 module compiles in the functions it calls from another (``consistency.nees_batch`` calls
-``update._cholesky``), so editing ``update.py`` left ``consistency.py``'s cached kernels
-in place, still holding the old ``_cholesky``: stale results, or a crash when the old
-code no longer links. The locators below give every function of this package the hash
-of all its modules' sources as the stamp, so any edit to any kernel module recompiles
-them all (a release's cache is rebuilt on upgrade as before). Functions elsewhere keep
+``cholesky._cholesky``) and the constants it reads from ``core/layout.py`` (module-level ints,
+frozen into the machine code), so a per-file stamp would keep stale code after an edit of a
+callee's module or of the layout. The locators below give every function of this package the
+hash of all its modules' sources and of the ``core`` modules they import (``from .. import
+layout``, ``from ..layout import ...``: ``core_dependencies``) as the stamp, so any edit to any
+of them recompiles them all (a release's cache is rebuilt on upgrade as before). Functions elsewhere keep
 Numba's own locators. Installed by ``core/kernels/__init__.py`` before the first
 ``@njit(cache=True)`` of the package runs (Numba picks a function's locator when it is
 decorated).
@@ -14,6 +15,7 @@ decorated).
 
 from __future__ import annotations
 
+import ast
 import functools
 import hashlib
 import os
@@ -29,23 +31,47 @@ def source_files(directory: Path = PACKAGE_DIR) -> list[Path]:
     return sorted(p for p in directory.glob("*.py") if p.is_file())
 
 
+def core_dependencies(directory: Path = PACKAGE_DIR) -> list[Path]:
+    """The modules of the parent package (``core``) that the package's modules import, sorted: ``from ..x import``
+    and ``from .. import x`` where ``x.py`` exists one level up."""
+    return list(_dependencies_of(_listing(source_files(directory))))
+
+
+def _listing(paths: list[Path]) -> tuple[tuple[str, float, int], ...]:
+    """``(path, mtime, size)`` of each file: the key of the memos below (the content itself is read)."""
+    out = []
+    for p in paths:
+        st = p.stat()
+        out.append((str(p), st.st_mtime, st.st_size))
+    return tuple(out)
+
+
 @functools.lru_cache(maxsize=8)
-def _stamp_of(files: tuple[tuple[str, float, int], ...]) -> bytes:
+def _dependencies_of(files: tuple[tuple[str, float, int], ...]) -> tuple[Path, ...]:
+    names = set()
+    for path, _mtime, _size in files:
+        for node in ast.walk(ast.parse(Path(path).read_bytes())):
+            if isinstance(node, ast.ImportFrom) and node.level == 2:
+                names.update([node.module.split(".")[0]] if node.module else [a.name for a in node.names])
+    parent = Path(files[0][0]).parent.parent if files else Path()
+    return tuple(sorted(f for f in (parent / f"{name}.py" for name in names) if f.is_file()))
+
+
+@functools.lru_cache(maxsize=8)
+def _stamp_of(files: tuple[tuple[str, float, int], ...], deps: tuple[tuple[str, float, int], ...]) -> bytes:
     h = hashlib.sha256()
-    for path, _mtime, _size in files:  # (mtime, size) only key the memo: the content is hashed
-        h.update(Path(path).name.encode() + b"\0")
-        h.update(Path(path).read_bytes())
-        h.update(b"\0")
+    for label, listing in ((b"", files), (b"../", deps)):  # (mtime, size) only key the memo: the content is hashed
+        for path, _mtime, _size in listing:
+            h.update(label + Path(path).name.encode() + b"\0")
+            h.update(Path(path).read_bytes())
+            h.update(b"\0")
     return h.digest()
 
 
 def package_stamp(directory: Path = PACKAGE_DIR) -> bytes:
-    """SHA-256 of the names and contents of the package's modules."""
-    files = []
-    for p in source_files(directory):
-        st = p.stat()
-        files.append((str(p), st.st_mtime, st.st_size))
-    return _stamp_of(tuple(files))
+    """SHA-256 of the names and contents of the package's modules and of the ``core`` modules they import."""
+    files = _listing(source_files(directory))
+    return _stamp_of(files, _listing(list(_dependencies_of(files))))
 
 
 def _package_locator(base: type) -> type:

@@ -5,9 +5,8 @@ of a compiled function that has a branch, and every view made of such an array (
 ``x[9:13]``), gets an atomic increment on entry and an atomic decrement on exit of the owner's
 count (``NRT_incref`` / ``NRT_decref``: a locked instruction each, which drains the store buffer).
 Its pruning pass removes the pairs it can match, but not across the branches of the kernels'
-per-trial loops. Measured in the compiled update of case B's full-state EKF (250 trials):
-~790 such calls per trial and step, 1.4 us of its 16.7 us (and 0.17 us of the 1.14 us state
-predict).
+per-trial loops, where hundreds of them per trial and step are a measurable part of a small update
+(docs/kernels.md).
 
 ``borrow(a)`` is ``a`` (the same data, shape and strides) with no owner: its views and the calls
 that take it pay no atomic operation (``NRT_incref`` of a null meminfo returns at once). It is a

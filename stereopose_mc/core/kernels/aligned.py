@@ -39,16 +39,20 @@ from numba import njit
 from . import attitude as _att
 from ._refs import borrow, keep
 from .attitude import _qmul, _quat_times, _small_quaternion, _small_quaternion_jacobian
-from .model import NNZ, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
+from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, E_SHIFT, K_SIZE, OMEGA,
+                      POINTS, QUAT, R_K, REDUCED, RHO, RHO_DOT, VEC, e_n_points)  # fmt: skip
+from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
+from .model import n_points as _n_points
+
+_e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
-E_POINTS = 12  # first column of the points in the aligned error state (and delta at 9..11)
-
-
-@njit(**_JIT)
-def _n_points(n):
-    return (n - 15) // 3
+DELTA = E_ROT  # the body-frame rotation ``delta`` of the aligned error state
+D_END = DELTA + VEC
+# a feature row of the row-sparse H_e holds e_c, e_cdot, e_omega, then its point's 3 values, then the 3 virtual ones
+HR_POINT = E_OMEGA + VEC
+HR_VIRTUAL = HR_POINT + VEC
 
 
 @njit(**_JIT)
@@ -58,7 +62,7 @@ def _point_mean(x, N, pb):
         pb[a] = 0.0
     for i in range(N):
         for a in range(3):
-            pb[a] += x[13 + 3 * i + a]
+            pb[a] += x[POINTS + VEC * i + a]
     for a in range(3):
         pb[a] /= N
 
@@ -66,7 +70,7 @@ def _point_mean(x, N, pb):
 @njit(**_JIT)
 def _centroid_ref(xr, N, Dref, v):
     """``D_ref = D(q_ref)`` and ``v = D_ref P_bar,ref``; returns nothing (fills both)."""
-    _dcm(xr[9:13], Dref)
+    _dcm(xr[QUAT:Q_END], Dref)
     own = np.empty(3)
     pb = borrow(own)  # (_refs; kept to the end)
     _point_mean(xr, N, pb)
@@ -81,39 +85,40 @@ def _chart(xr, e, out, Dref, R, v):
     n = xr.shape[0]
     N = _n_points(n)
     _centroid_ref(xr, N, Dref, v)
-    w0, w1, w2 = xr[6], xr[7], xr[8]
-    c0, c1, c2 = xr[0] + v[0], xr[1] + v[1], xr[2] + v[2]
-    d0 = xr[3] + (w1 * v[2] - w2 * v[1])
-    d1 = xr[4] + (w2 * v[0] - w0 * v[2])
-    d2 = xr[5] + (w0 * v[1] - w1 * v[0])
+    w0, w1, w2 = xr[OMEGA], xr[OMEGA + 1], xr[OMEGA + 2]
+    c0, c1, c2 = xr[RHO] + v[0], xr[RHO + 1] + v[1], xr[RHO + 2] + v[2]
+    d0 = xr[RHO_DOT] + (w1 * v[2] - w2 * v[1])
+    d1 = xr[RHO_DOT + 1] + (w2 * v[0] - w0 * v[2])
+    d2 = xr[RHO_DOT + 2] + (w0 * v[1] - w1 * v[0])
     own = np.zeros(7)
     dq, ub = borrow((own[:4], own[4:]))  # (_refs; kept to the end)
-    _small_quaternion(e[9:12], dq)
-    _qmul(xr[9:13], dq, out[9:13])  # q_ref (x) dq(delta)
+    _small_quaternion(e[DELTA:D_END], dq)
+    _qmul(xr[QUAT:Q_END], dq, out[QUAT:Q_END])  # q_ref (x) dq(delta)
     _dcm(dq, R)
     for i in range(N):
-        u0 = xr[13 + 3 * i] + e[12 + 3 * i]
-        u1 = xr[14 + 3 * i] + e[13 + 3 * i]
-        u2 = xr[15 + 3 * i] + e[14 + 3 * i]
+        p, ep = POINTS + VEC * i, E_POINTS + VEC * i
+        u0 = xr[p] + e[ep]
+        u1 = xr[p + 1] + e[ep + 1]
+        u2 = xr[p + 2] + e[ep + 2]
         ub[0] += u0
         ub[1] += u1
         ub[2] += u2
         for a in range(3):  # R^T u
-            out[13 + 3 * i + a] = R[0, a] * u0 + R[1, a] * u1 + R[2, a] * u2
+            out[p + a] = R[0, a] * u0 + R[1, a] * u1 + R[2, a] * u2
     for a in range(3):
         ub[a] /= N
     for a in range(3):
-        out[6 + a] = xr[6 + a] + e[6 + a]
+        out[OMEGA + a] = xr[OMEGA + a] + e[E_OMEGA + a]
         v[a] = Dref[a, 0] * ub[0] + Dref[a, 1] * ub[1] + Dref[a, 2] * ub[2]
-    out[n - 2] = xr[n - 2] + e[n - 3]
-    out[n - 1] = xr[n - 1] + e[n - 2]
-    w0, w1, w2 = out[6], out[7], out[8]
-    out[0] = c0 + e[0] - v[0]
-    out[1] = c1 + e[1] - v[1]
-    out[2] = c2 + e[2] - v[2]
-    out[3] = d0 + e[3] - (w1 * v[2] - w2 * v[1])
-    out[4] = d1 + e[4] - (w2 * v[0] - w0 * v[2])
-    out[5] = d2 + e[5] - (w0 * v[1] - w1 * v[0])
+    for j in range(n - K_SIZE, n):
+        out[j] = xr[j] + e[j - E_SHIFT]
+    w0, w1, w2 = out[OMEGA], out[OMEGA + 1], out[OMEGA + 2]
+    out[RHO] = c0 + e[E_RHO] - v[0]
+    out[RHO + 1] = c1 + e[E_RHO + 1] - v[1]
+    out[RHO + 2] = c2 + e[E_RHO + 2] - v[2]
+    out[RHO_DOT] = d0 + e[E_RHO_DOT] - (w1 * v[2] - w2 * v[1])
+    out[RHO_DOT + 1] = d1 + e[E_RHO_DOT + 1] - (w2 * v[0] - w0 * v[2])
+    out[RHO_DOT + 2] = d2 + e[E_RHO_DOT + 2] - (w0 * v[1] - w1 * v[0])
     keep(own)
 
 
@@ -124,17 +129,18 @@ def _local(xh, xt, e, D, Dt, R, dq, tmp, v3):
     ``P_bar_ref, P_bar, v_ref = D P_bar_ref, v, [omega_ref x] v_ref, [omega x] v`` (``core.kernels.consistency``
     reads ``D`` and ``v_ref``)."""
     N = _n_points(xh.shape[0])
-    nh = math.sqrt(xh[9] ** 2 + xh[10] ** 2 + xh[11] ** 2 + xh[12] ** 2)
-    nt = math.sqrt(xt[9] ** 2 + xt[10] ** 2 + xt[11] ** 2 + xt[12] ** 2)
-    tmp[0], tmp[1], tmp[2], tmp[3] = xh[9] / nh, -xh[10] / nh, -xh[11] / nh, -xh[12] / nh
-    _qmul(tmp, xt[9:13], dq)
+    q = QUAT
+    nh = math.sqrt(xh[q] ** 2 + xh[q + 1] ** 2 + xh[q + 2] ** 2 + xh[q + 3] ** 2)
+    nt = math.sqrt(xt[q] ** 2 + xt[q + 1] ** 2 + xt[q + 2] ** 2 + xt[q + 3] ** 2)
+    tmp[0], tmp[1], tmp[2], tmp[3] = xh[q] / nh, -xh[q + 1] / nh, -xh[q + 2] / nh, -xh[q + 3] / nh
+    _qmul(tmp, xt[QUAT:Q_END], dq)
     for j in range(4):
         dq[j] /= nt
     for j in range(3):
-        e[9 + j] = 2.0 * dq[1 + j] / dq[0]
+        e[DELTA + j] = 2.0 * dq[1 + j] / dq[0]
     _dcm(dq, R)
-    _dcm(xh[9:13], D)
-    _dcm(xt[9:13], Dt)
+    _dcm(xh[QUAT:Q_END], D)
+    _dcm(xt[QUAT:Q_END], Dt)
     pbh, pbt, vh, vt, ch, ct = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
     for r in range(3):
         pbh[r] = 0.0
@@ -142,27 +148,28 @@ def _local(xh, xt, e, D, Dt, R, dq, tmp, v3):
         vh[r] = 0.0
         vt[r] = 0.0
     for i in range(N):
+        p, ep = POINTS + VEC * i, E_POINTS + VEC * i
         for r in range(3):
-            pbh[r] += xh[13 + 3 * i + r] / N
-            pbt[r] += xt[13 + 3 * i + r] / N
+            pbh[r] += xh[p + r] / N
+            pbt[r] += xt[p + r] / N
             s = 0.0
             for c in range(3):
-                s += R[r, c] * xt[13 + 3 * i + c]
-            e[12 + 3 * i + r] = s - xh[13 + 3 * i + r]
+                s += R[r, c] * xt[p + c]
+            e[ep + r] = s - xh[p + r]
     for r in range(3):
         for c in range(3):
             vh[r] += D[r, c] * pbh[c]
             vt[r] += Dt[r, c] * pbt[c]
     for r in range(3):
-        e[6 + r] = xt[6 + r] - xh[6 + r]
-        e[r] = (xt[r] + vt[r]) - (xh[r] + vh[r])
-    wh, wt = xh[6:9], xt[6:9]
+        e[E_OMEGA + r] = xt[OMEGA + r] - xh[OMEGA + r]
+        e[E_RHO + r] = (xt[RHO + r] + vt[r]) - (xh[RHO + r] + vh[r])
+    wh, wt = xh[OMEGA : OMEGA + VEC], xt[OMEGA : OMEGA + VEC]
     ch[0], ch[1], ch[2] = wh[1] * vh[2] - wh[2] * vh[1], wh[2] * vh[0] - wh[0] * vh[2], wh[0] * vh[1] - wh[1] * vh[0]
     ct[0], ct[1], ct[2] = wt[1] * vt[2] - wt[2] * vt[1], wt[2] * vt[0] - wt[0] * vt[2], wt[0] * vt[1] - wt[1] * vt[0]
     for r in range(3):
-        e[3 + r] = (xt[3 + r] + ct[r]) - (xh[3 + r] + ch[r])
-    for j in range(2):
-        e[12 + 3 * N + j] = xt[13 + 3 * N + j] - xh[13 + 3 * N + j]
+        e[E_RHO_DOT + r] = (xt[RHO_DOT + r] + ct[r]) - (xh[RHO_DOT + r] + ch[r])
+    for j in range(POINTS + VEC * N, POINTS + VEC * N + K_SIZE):
+        e[j - E_SHIFT] = xt[j] - xh[j]
     return nh, nt
 
 
@@ -178,46 +185,47 @@ def _chart_jacobian(xr, e, S):
     Sq, R, dR = ws[16:28].reshape((4, 3)), ws[28:37].reshape((3, 3)), ws[37:73].reshape((4, 3, 3))
     w, W, ub, u, dRtu = ws[73:76], ws[76:85].reshape((3, 3)), ws[85:88], ws[88:91], ws[91:103].reshape((3, 4))
     _centroid_ref(xr, N, Dref, v)  # D_ref (v is recomputed below at u)
-    _small_quaternion(e[9:12], dq)
-    _small_quaternion_jacobian(e[9:12], Sq)
-    _quat_times(xr[9:13], Sq, S[9:13, 9:12], 1.0)
+    _small_quaternion(e[DELTA:D_END], dq)
+    _small_quaternion_jacobian(e[DELTA:D_END], Sq)
+    _quat_times(xr[QUAT:Q_END], Sq, S[QUAT:Q_END, DELTA:D_END], 1.0)
     _dcm_derivative(dq, R, dR)
     for a in range(3):
-        w[a] = xr[6 + a] + e[6 + a]
+        w[a] = xr[OMEGA + a] + e[E_OMEGA + a]
     for c in range(3):  # W = [w x] D_ref / N
         W[0, c] = (w[1] * Dref[2, c] - w[2] * Dref[1, c]) / N
         W[1, c] = (w[2] * Dref[0, c] - w[0] * Dref[2, c]) / N
         W[2, c] = (w[0] * Dref[1, c] - w[1] * Dref[0, c]) / N
     for i in range(N):
-        r0, c0 = 13 + 3 * i, 12 + 3 * i
+        r0, c0 = POINTS + VEC * i, E_POINTS + VEC * i
         for a in range(3):
             u[a] = xr[r0 + a] + e[c0 + a]
             ub[a] += u[a]
         for a in range(3):
             for b in range(3):
                 S[r0 + a, c0 + b] = R[b, a]
-                S[a, c0 + b] = -Dref[a, b] / N
-                S[3 + a, c0 + b] = -W[a, b]
+                S[RHO + a, c0 + b] = -Dref[a, b] / N
+                S[RHO_DOT + a, c0 + b] = -W[a, b]
             for j in range(4):  # (dR_j^T u)_a
                 dRtu[a, j] = dR[j, 0, a] * u[0] + dR[j, 1, a] * u[1] + dR[j, 2, a] * u[2]
         for a in range(3):
             for j in range(3):
-                S[r0 + a, 9 + j] = (dRtu[a, 0] * Sq[0, j] + dRtu[a, 1] * Sq[1, j] + dRtu[a, 2] * Sq[2, j]
+                S[r0 + a, DELTA + j] = (dRtu[a, 0] * Sq[0, j] + dRtu[a, 1] * Sq[1, j] + dRtu[a, 2] * Sq[2, j]
                                     + dRtu[a, 3] * Sq[3, j])  # fmt: skip
     for a in range(3):
         ub[a] /= N
     for a in range(3):
         v[a] = Dref[a, 0] * ub[0] + Dref[a, 1] * ub[1] + Dref[a, 2] * ub[2]
     for a in range(3):
-        S[a, a] = 1.0
-        S[3 + a, 3 + a] = 1.0
-        S[6 + a, 6 + a] = 1.0
+        S[RHO + a, E_RHO + a] = 1.0
+        S[RHO_DOT + a, E_RHO_DOT + a] = 1.0
+        S[OMEGA + a, E_OMEGA + a] = 1.0
     # [v x] on rho_dot <- e_omega
-    S[3, 7], S[3, 8] = -v[2], v[1]
-    S[4, 6], S[4, 8] = v[2], -v[0]
-    S[5, 6], S[5, 7] = -v[1], v[0]
-    S[n - 2, n - 3] = 1.0
-    S[n - 1, n - 2] = 1.0
+    r, c = RHO_DOT, E_OMEGA
+    S[r, c + 1], S[r, c + 2] = -v[2], v[1]
+    S[r + 1, c], S[r + 1, c + 2] = v[2], -v[0]
+    S[r + 2, c], S[r + 2, c + 1] = -v[1], v[0]
+    for j in range(n - K_SIZE, n):
+        S[j, j - E_SHIFT] = 1.0
     keep(own)
 
 
@@ -227,7 +235,7 @@ def _error_map(xr, T):
     n = xr.shape[0]
     N = _n_points(n)
     T[:, :] = 0.0
-    q = xr[9:13]
+    q = xr[QUAT:Q_END]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
     own = np.empty(75)  # one allocation for the scratch below
@@ -247,40 +255,42 @@ def _error_map(xr, T):
         v[a] = D[a, 0] * pb[0] + D[a, 1] * pb[1] + D[a, 2] * pb[2]
         for j in range(4):
             dv[a, j] = dD[j, a, 0] * pb[0] + dD[j, a, 1] * pb[1] + dD[j, a, 2] * pb[2]
-    w0, w1, w2 = xr[6], xr[7], xr[8]
+    w0, w1, w2 = xr[OMEGA], xr[OMEGA + 1], xr[OMEGA + 2]
     for a in range(3):
         for j in range(4):
-            T[9 + a, 9 + j] = Xi[a, j]
+            T[DELTA + a, QUAT + j] = Xi[a, j]
+    ec, ed = E_RHO, E_RHO_DOT
     for i in range(N):
-        r0, c0 = 12 + 3 * i, 13 + 3 * i
+        r0, c0 = E_POINTS + VEC * i, POINTS + VEC * i
         P0, P1, P2 = xr[c0], xr[c0 + 1], xr[c0 + 2]
         for j in range(4):  # -[P_i x] Xi
-            T[r0, 9 + j] = -(-P2 * Xi[1, j] + P1 * Xi[2, j])
-            T[r0 + 1, 9 + j] = -(P2 * Xi[0, j] - P0 * Xi[2, j])
-            T[r0 + 2, 9 + j] = -(-P1 * Xi[0, j] + P0 * Xi[1, j])
+            T[r0, QUAT + j] = -(-P2 * Xi[1, j] + P1 * Xi[2, j])
+            T[r0 + 1, QUAT + j] = -(P2 * Xi[0, j] - P0 * Xi[2, j])
+            T[r0 + 2, QUAT + j] = -(-P1 * Xi[0, j] + P0 * Xi[1, j])
         for a in range(3):
             T[r0 + a, c0 + a] = 1.0
             for b in range(3):
-                T[a, c0 + b] = D[a, b] / N
+                T[ec + a, c0 + b] = D[a, b] / N
         for b in range(3):  # [w x] D / N
-            T[3, c0 + b] = (w1 * D[2, b] - w2 * D[1, b]) / N
-            T[4, c0 + b] = (w2 * D[0, b] - w0 * D[2, b]) / N
-            T[5, c0 + b] = (w0 * D[1, b] - w1 * D[0, b]) / N
+            T[ed, c0 + b] = (w1 * D[2, b] - w2 * D[1, b]) / N
+            T[ed + 1, c0 + b] = (w2 * D[0, b] - w0 * D[2, b]) / N
+            T[ed + 2, c0 + b] = (w0 * D[1, b] - w1 * D[0, b]) / N
     for j in range(4):
-        T[0, 9 + j], T[1, 9 + j], T[2, 9 + j] = dv[0, j], dv[1, j], dv[2, j]
-        T[3, 9 + j] = w1 * dv[2, j] - w2 * dv[1, j]
-        T[4, 9 + j] = w2 * dv[0, j] - w0 * dv[2, j]
-        T[5, 9 + j] = w0 * dv[1, j] - w1 * dv[0, j]
+        T[ec, QUAT + j], T[ec + 1, QUAT + j], T[ec + 2, QUAT + j] = dv[0, j], dv[1, j], dv[2, j]
+        T[ed, QUAT + j] = w1 * dv[2, j] - w2 * dv[1, j]
+        T[ed + 1, QUAT + j] = w2 * dv[0, j] - w0 * dv[2, j]
+        T[ed + 2, QUAT + j] = w0 * dv[1, j] - w1 * dv[0, j]
     for a in range(3):
-        T[a, a] = 1.0
-        T[3 + a, 3 + a] = 1.0
-        T[6 + a, 6 + a] = 1.0
+        T[ec + a, RHO + a] = 1.0
+        T[ed + a, RHO_DOT + a] = 1.0
+        T[E_OMEGA + a, OMEGA + a] = 1.0
     # -[v x] on e_cdot <- omega
-    T[3, 7], T[3, 8] = v[2], -v[1]
-    T[4, 6], T[4, 8] = -v[2], v[0]
-    T[5, 6], T[5, 7] = v[1], -v[0]
-    T[n - 3, n - 2] = 1.0
-    T[n - 2, n - 1] = 1.0
+    c = OMEGA
+    T[ed, c + 1], T[ed, c + 2] = v[2], -v[1]
+    T[ed + 1, c], T[ed + 1, c + 2] = -v[2], v[0]
+    T[ed + 2, c], T[ed + 2, c + 1] = v[1], -v[0]
+    for j in range(n - K_SIZE, n):
+        T[j - E_SHIFT, j] = 1.0
     keep(own)
 
 
@@ -301,39 +311,39 @@ def _apply_error_map(Tm, N, src, dst, Sp, lower=False):
     the same order as in the full product (the same bits), for about half the work.
     """
     ne, mm = dst.shape
-    ms = min(6, mm) if lower else mm  # the columns of the point sums that the rows read (rows < 6 only)
+    ms = min(E_OMEGA, mm) if lower else mm  # the columns of the point sums that the rows read (e_c, e_cdot only)
     for a in range(3):
         for c in range(ms):
             Sp[a, c] = 0.0
     for i in range(N):
         for a in range(3):
             for c in range(ms):
-                Sp[a, c] += src[13 + 3 * i + a, c]
+                Sp[a, c] += src[POINTS + VEC * i + a, c]
     for r in range(ne):
         m = min(r + 1, mm) if lower else mm
-        if r < 9:
+        if r < DELTA:
             for c in range(m):
                 dst[r, c] = src[r, c]
-        elif r < 12:
+        elif r < D_END:
             for c in range(m):
                 dst[r, c] = 0.0
         else:
             for c in range(m):
-                dst[r, c] = src[r + 1, c]
-        if r < 6 or (r >= 9 and r < ne - 2):  # the quaternion block
-            for j in range(9, 13):
+                dst[r, c] = src[r + E_SHIFT, c]
+        if r < E_OMEGA or (r >= DELTA and r < ne - K_SIZE):  # the quaternion block
+            for j in range(QUAT, Q_END):
                 t = Tm[r, j]
                 for c in range(m):
                     dst[r, c] += t * src[j, c]
-        if r < 6:  # the points' mean
+        if r < E_OMEGA:  # the points' mean
             for b in range(3):
-                t = Tm[r, 13 + b]
+                t = Tm[r, POINTS + b]
                 for c in range(m):
                     dst[r, c] += t * Sp[b, c]
-        if r >= 3 and r < 6:  # -[v x] on omega
-            for j in range(6, 9):
+        if r >= E_RHO_DOT and r < E_OMEGA:  # -[v x] on omega
+            for j in range(OMEGA, OMEGA + VEC):
                 t = Tm[r, j]
-                if j != r + 3:
+                if j != r - E_RHO_DOT + OMEGA:
                     for c in range(m):
                         dst[r, c] += t * src[j, c]
 
@@ -366,7 +376,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     Sp = np.empty((3, ne))  # _apply_error_map's point sums
     N = _n_points(n)
     PS = np.empty((n, ne))
-    Sc = np.empty((15, ne))
+    Sc = np.empty((REDUCED, ne))
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
     e0 = np.zeros(ne)
@@ -374,22 +384,22 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     x, x_pred, Tb, P, Q, outb = borrow((x, x_pred, Tb, P, Q, out))
     S, T, QT, W, Sp, PS, Sc, Y, M, e0 = borrow(own)
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             _chart_jacobian(x[b], e0, S)
             _error_map(x_pred[b], T)
         else:
             _att._chart_jacobian(x[b], e0, S)
             _att._error_map(x_pred[b], T)
-        for a in range(13, n):
+        for a in range(COMMON, n):
             for j in range(ne):
                 PS[a, j] = S[a, j]
         for j in range(ne):  # S[c], c = [0..12, n-2, n-1]
-            for a in range(13):
+            for a in range(COMMON):
                 Sc[a, j] = S[a, j]
-            Sc[13, j] = S[n - 2, j]
-            Sc[14, j] = S[n - 1, j]
-        np.dot(Tb[b], Sc, PS[:13])  # (Phi S)[0:13] = Tb S[c] (BLAS gemm)
-        if chart == 1:  # Phi_e = T (Phi S) from the non-zeros of T
+            for a in range(K_SIZE):
+                Sc[R_K + a, j] = S[n - K_SIZE + a, j]
+        np.dot(Tb[b], Sc, PS[:COMMON])  # (Phi S)[0:13] = Tb S[c] (BLAS gemm)
+        if chart == CHART_ALIGNED:  # Phi_e = T (Phi S) from the non-zeros of T
             _apply_error_map(T, N, PS, Y, Sp)
         else:
             np.dot(T, PS, Y)
@@ -399,7 +409,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
         for j in range(n):
             for r in range(ne):
                 QT[j, r] = Q[b, j] * T[r, j]
-        if chart == 1:  # T (diag(Q) T^T)
+        if chart == CHART_ALIGNED:  # T (diag(Q) T^T)
             _apply_error_map(T, N, QT, W, Sp, True)  # its lower triangle (added to P-'s below)
         else:
             np.dot(T, QT, W)
@@ -437,7 +447,7 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
         return
     C = 9 if disparity else 8
     nf = vis.shape[0] * C
-    w0, w1, w2 = xt[6], xt[7], xt[8]
+    w0, w1, w2 = xt[OMEGA], xt[OMEGA + 1], xt[OMEGA + 2]
     WD = ws[21:30].reshape((3, 3))  # [omega x] D_ref / N
     for j in range(3):
         WD[0, j] = (w1 * Dref[2, j] - w2 * Dref[1, j]) / N
@@ -447,19 +457,22 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
     for r in range(nf):
         for k in range(NNZ):
             h[k] = Hval[r, k]
-        Hval[r, 6] = h[6] + (h[4] * v[2] - h[5] * v[1])
-        Hval[r, 7] = h[7] + (h[5] * v[0] - h[3] * v[2])
-        Hval[r, 8] = h[8] + (h[3] * v[1] - h[4] * v[0])
+        # e_c = H_rho and e_cdot = H_rho_dot stay in their columns
+        o, d, p = OMEGA, RHO_DOT, H_POINT
+        Hval[r, E_OMEGA] = h[o] + (h[d + 1] * v[2] - h[d + 2] * v[1])
+        Hval[r, E_OMEGA + 1] = h[o + 1] + (h[d + 2] * v[0] - h[d] * v[2])
+        Hval[r, E_OMEGA + 2] = h[o + 2] + (h[d] * v[1] - h[d + 1] * v[0])
         for j in range(3):
-            Hval[r, 9 + j] = h[13] * R[j, 0] + h[14] * R[j, 1] + h[15] * R[j, 2]
-            Hval[r, 12 + j] = (-(h[0] * Dref[0, j] + h[1] * Dref[1, j] + h[2] * Dref[2, j]) / N
-                               - (h[3] * WD[0, j] + h[4] * WD[1, j] + h[5] * WD[2, j]))  # fmt: skip
-        Hval[r, 15] = 0.0
+            Hval[r, HR_POINT + j] = h[p] * R[j, 0] + h[p + 1] * R[j, 1] + h[p + 2] * R[j, 2]
+            Hval[r, HR_VIRTUAL + j] = (-(h[RHO] * Dref[0, j] + h[RHO + 1] * Dref[1, j] + h[RHO + 2] * Dref[2, j]) / N
+                                       - (h[d] * WD[0, j] + h[d + 1] * WD[1, j] + h[d + 2] * WD[2, j]))  # fmt: skip
+        for k in range(HR_VIRTUAL + VEC, NNZ):
+            Hval[r, k] = 0.0
     if pseudo:
         Sq = ws[46:58].reshape((4, 3))
         LSq = ws[58:70].reshape((4, 3))
-        _small_quaternion_jacobian(e[9:12], Sq)
-        _quat_times(xr[9:13], Sq, LSq, 1.0)
+        _small_quaternion_jacobian(e[DELTA:D_END], Sq)
+        _quat_times(xr[QUAT:Q_END], Sq, LSq, 1.0)
         _att._pseudo_rows_rotated(Hval, nf, LSq, h)
     keep(own)
 
@@ -467,22 +480,22 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
 def measurement_columns(ne, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H_e``: a feature's rows see ``e_c, e_cdot, e_omega``,
     its point and the virtual point-sum columns ``ne, ne+1, ne+2``; the pseudo rows ``e_omega, delta, e_k``."""
-    k = np.array([ne - 2, ne - 1])
-    return row_columns(vis, channels, np.arange(9), E_POINTS, np.arange(ne, ne + 3),
-                       np.concatenate((np.arange(6, 12), k)), pseudo)  # fmt: skip
+    k = np.arange(ne - K_SIZE, ne)
+    return row_columns(vis, channels, np.arange(E_ROT), E_POINTS, np.arange(ne, ne + VEC),
+                       np.concatenate((np.arange(E_OMEGA, D_END), k)), pseudo)  # fmt: skip
 
 
 @njit(**_JIT)
 def virtual_rows(M, out):
     """``out[ne + a] = sum_j M[12 + 3 j + a]`` (``ne`` rows in ``M``; ``M`` may be ``out[:ne]``)."""
     ne = M.shape[0]
-    N = (ne - 14) // 3
+    N = _e_n_points(ne)
     for a in range(3):
         for j in range(M.shape[1]):
             out[ne + a, j] = 0.0
         for p in range(N):
             for j in range(M.shape[1]):
-                out[ne + a, j] += M[E_POINTS + 3 * p + a, j]
+                out[ne + a, j] += M[E_POINTS + VEC * p + a, j]
 
 
 def dense(Hval: np.ndarray, cols: np.ndarray, ne: int) -> np.ndarray:
@@ -490,6 +503,6 @@ def dense(Hval: np.ndarray, cols: np.ndarray, ne: int) -> np.ndarray:
     from .model import dense as dense_full
 
     H = dense_full(Hval, cols, ne + 3)
-    for p in range((ne - 14) // 3):
-        H[..., E_POINTS + 3 * p : E_POINTS + 3 * p + 3] += H[..., ne:]
+    for p in range(e_n_points(ne)):
+        H[..., E_POINTS + VEC * p : E_POINTS + VEC * (p + 1)] += H[..., ne:]
     return np.ascontiguousarray(H[..., :ne])

@@ -27,11 +27,15 @@ import math
 import numpy as np
 from numba import njit
 
-from .model import NNZ, _measure_one, row_columns
+from ..layout import E_OMEGA, E_POINTS, E_ROT, E_SHIFT, K_SIZE, POINTS, QUAT, VEC
+from .model import H_POINT, NNZ, PS_K, PS_QUAT, Q_END, _measure_one, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
-ATT = 9  # first column of the attitude error ``a`` (and of the quaternion in the state)
+ATT = E_ROT  # first entry of the attitude error ``a`` (the quaternion's in the state: QUAT, the same offset)
+A_END = ATT + VEC
+HE_POINT = E_POINTS  # a feature row's point columns in the row-sparse H_eps
+PSE_K = PS_QUAT + VEC  # a pseudo row's k columns in the row-sparse H_eps (omega, a, k)
 
 
 @njit(**_JIT)
@@ -66,13 +70,13 @@ def _small_quaternion_jacobian(d, Sq):
 def _chart(xr, e, out):
     """``out = x_ref [+] eps`` (``errorstate.chart``): additive, ``q = dq(a) (x) q_ref``."""
     n = xr.shape[0]
-    for i in range(9):
+    for i in range(QUAT):
         out[i] = xr[i] + e[i]
-    for i in range(13, n):
-        out[i] = xr[i] + e[i - 1]
+    for i in range(POINTS, n):
+        out[i] = xr[i] + e[i - E_SHIFT]
     dq = np.empty(4)
-    _small_quaternion(e[9:12], dq)
-    _qmul(dq, xr[9:13], out[9:13])  # dq(a) (x) q_ref
+    _small_quaternion(e[ATT:A_END], dq)
+    _qmul(dq, xr[QUAT:Q_END], out[QUAT:Q_END])  # dq(a) (x) q_ref
 
 
 @njit(**_JIT)
@@ -80,18 +84,19 @@ def _local(xr, x, e):
     """``eps`` with ``x = x_ref [+] eps`` (``errorstate.local``): ``a = 2 vec(dq) / dq_0``,
     ``dq = q (x) normalize(q_ref)^* / |q|``; the difference elsewhere."""
     n = x.shape[0]
-    for i in range(9):
+    for i in range(QUAT):
         e[i] = x[i] - xr[i]
-    for i in range(13, n):
-        e[i - 1] = x[i] - xr[i]
-    nr = math.sqrt(xr[9] * xr[9] + xr[10] * xr[10] + xr[11] * xr[11] + xr[12] * xr[12])
-    nx = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
-    r0, r1, r2, r3 = xr[9] / nr, -(xr[10] / nr), -(xr[11] / nr), -(xr[12] / nr)
-    p0, p1, p2, p3 = x[9], x[10], x[11], x[12]
+    for i in range(POINTS, n):
+        e[i - E_SHIFT] = x[i] - xr[i]
+    s0, s1, s2, s3 = xr[QUAT], xr[QUAT + 1], xr[QUAT + 2], xr[QUAT + 3]
+    p0, p1, p2, p3 = x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3]
+    nr = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3)
+    nx = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2 + p3 * p3)
+    r0, r1, r2, r3 = s0 / nr, -(s1 / nr), -(s2 / nr), -(s3 / nr)
     d0 = (p0 * r0 - p1 * r1 - p2 * r2 - p3 * r3) / nx
-    e[9] = 2.0 * ((p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2) / nx) / d0
-    e[10] = 2.0 * ((p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1) / nx) / d0
-    e[11] = 2.0 * ((p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0) / nx) / d0
+    e[ATT] = 2.0 * ((p0 * r1 + p1 * r0 + p2 * r3 - p3 * r2) / nx) / d0
+    e[ATT + 1] = 2.0 * ((p0 * r2 - p1 * r3 + p2 * r0 + p3 * r1) / nx) / d0
+    e[ATT + 2] = 2.0 * ((p0 * r3 + p1 * r2 - p2 * r1 + p3 * r0) / nx) / d0
 
 
 @njit(**_JIT)
@@ -114,13 +119,13 @@ def _chart_jacobian(xr, e, S):
     """``S = d (x_ref [+] eps) / d eps`` (``n x n-1``, ``errorstate.chart_jacobian``), written in full."""
     n = xr.shape[0]
     S[:, :] = 0.0
-    for i in range(9):
+    for i in range(QUAT):
         S[i, i] = 1.0
-    for i in range(13, n):
-        S[i, i - 1] = 1.0
+    for i in range(POINTS, n):
+        S[i, i - E_SHIFT] = 1.0
     Sq = np.empty((4, 3))
-    _small_quaternion_jacobian(e[9:12], Sq)
-    _quat_times(xr[9:13], Sq, S[9:13, 9:12], -1.0)
+    _small_quaternion_jacobian(e[ATT:A_END], Sq)
+    _quat_times(xr[QUAT:Q_END], Sq, S[QUAT:Q_END, ATT:A_END], -1.0)
 
 
 @njit(**_JIT)
@@ -128,17 +133,18 @@ def _error_map(xr, T):
     """``T = d eps / d x`` at ``x_ref`` (``n-1 x n``, ``errorstate.error_map``), written in full."""
     n = xr.shape[0]
     T[:, :] = 0.0
-    for i in range(9):
+    for i in range(QUAT):
         T[i, i] = 1.0
-    for i in range(13, n):
-        T[i - 1, i] = 1.0
-    q = xr[9:13]
+    for i in range(POINTS, n):
+        T[i - E_SHIFT, i] = 1.0
+    q = xr[QUAT:Q_END]
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     q0, q1, q2, q3 = q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn
     # Xi = 2 [R(q^*)]_{1:4, :}, q^* = [q0, -q1, -q2, -q3]
-    T[9, 9], T[9, 10], T[9, 11], T[9, 12] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
-    T[10, 9], T[10, 10], T[10, 11], T[10, 12] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
-    T[11, 9], T[11, 10], T[11, 11], T[11, 12] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
+    a, c = ATT, QUAT
+    T[a, c], T[a, c + 1], T[a, c + 2], T[a, c + 3] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
+    T[a + 1, c], T[a + 1, c + 1], T[a + 1, c + 2], T[a + 1, c + 3] = -2.0 * q2, 2.0 * q3, 2.0 * q0, -2.0 * q1
+    T[a + 2, c], T[a + 2, c + 1], T[a + 2, c + 2], T[a + 2, c + 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
 
 
 # --- measurement ----------------------------------------------------------------
@@ -159,8 +165,8 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
         return
     Sq = np.empty((4, 3))
     RSq = np.empty((4, 3))
-    _small_quaternion_jacobian(e[9:12], Sq)
-    _quat_times(xr[9:13], Sq, RSq, -1.0)
+    _small_quaternion_jacobian(e[ATT:A_END], Sq)
+    _quat_times(xr[QUAT:Q_END], Sq, RSq, -1.0)
     C = 9 if disparity else 8
     nf = vis.shape[0] * C
     h = np.empty(NNZ)
@@ -168,9 +174,11 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
         for k in range(NNZ):
             h[k] = Hval[r, k]
         for j in range(3):
-            Hval[r, 9 + j] = h[9] * RSq[0, j] + h[10] * RSq[1, j] + h[11] * RSq[2, j] + h[12] * RSq[3, j]
-            Hval[r, 12 + j] = h[13 + j]
-        Hval[r, 15] = 0.0
+            Hval[r, ATT + j] = (h[QUAT] * RSq[0, j] + h[QUAT + 1] * RSq[1, j] + h[QUAT + 2] * RSq[2, j]
+                                + h[QUAT + 3] * RSq[3, j])  # fmt: skip
+            Hval[r, HE_POINT + j] = h[H_POINT + j]
+        for k in range(HE_POINT + VEC, NNZ):
+            Hval[r, k] = 0.0
     if pseudo:
         _pseudo_rows_rotated(Hval, nf, RSq, h)
 
@@ -184,14 +192,16 @@ def _pseudo_rows_rotated(Hval, nf, M, h):
         for k in range(NNZ):
             h[k] = Hval[r, k]
         for j in range(3):
-            Hval[r, 3 + j] = h[3] * M[0, j] + h[4] * M[1, j] + h[5] * M[2, j] + h[6] * M[3, j]
-        Hval[r, 6], Hval[r, 7] = h[7], h[8]
-        for k in range(8, NNZ):
+            Hval[r, PS_QUAT + j] = (h[PS_QUAT] * M[0, j] + h[PS_QUAT + 1] * M[1, j] + h[PS_QUAT + 2] * M[2, j]
+                                    + h[PS_QUAT + 3] * M[3, j])  # fmt: skip
+        Hval[r, PSE_K], Hval[r, PSE_K + 1] = h[PS_K], h[PS_K + 1]
+        for k in range(PSE_K + K_SIZE, NNZ):
             Hval[r, k] = 0.0
 
 
 def measurement_columns(ne, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H_eps``: a feature's rows see ``rho, rho_dot, omega, a``
     and its point, the pseudo rows ``omega, a, k``."""
-    k = np.array([ne - 2, ne - 1])
-    return row_columns(vis, channels, np.arange(12), 12, np.arange(0), np.concatenate((np.arange(6, 12), k)), pseudo)
+    k = np.arange(ne - K_SIZE, ne)
+    return row_columns(vis, channels, np.arange(E_POINTS), E_POINTS, np.arange(0),
+                       np.concatenate((np.arange(E_OMEGA, A_END), k)), pseudo)  # fmt: skip

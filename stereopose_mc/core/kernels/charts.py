@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..layout import CHART_ALIGNED
 from . import aligned as ka
 from . import attitude as kt
 from .model import NNZ
@@ -34,7 +35,7 @@ def chart_batch(chart, x_ref, e):
     out = np.empty((B, n))
     Dref, R, v = np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             ka._chart(x_ref[b], e[b], out[b], Dref, R, v)
         else:
             kt._chart(x_ref[b], e[b], out[b])
@@ -49,7 +50,7 @@ def local_batch(chart, x_ref, x):
     D, Dt, R = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     dq, tmp, v3 = np.empty(4), np.empty(4), np.empty((6, 3))
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             ka._local(x_ref[b], x[b], out[b], D, Dt, R, dq, tmp, v3)
         else:
             kt._local(x_ref[b], x[b], out[b])
@@ -62,7 +63,7 @@ def chart_jacobian_batch(chart, x_ref, e):
     B, n = x_ref.shape
     out = np.empty((B, n, n - 1))
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             ka._chart_jacobian(x_ref[b], e[b], out[b])
         else:
             kt._chart_jacobian(x_ref[b], e[b], out[b])
@@ -75,7 +76,7 @@ def error_map_batch(chart, x_ref):
     B, n = x_ref.shape
     out = np.empty((B, n - 1, n))
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             ka._error_map(x_ref[b], out[b])
         else:
             kt._error_map(x_ref[b], out[b])
@@ -94,7 +95,7 @@ def measure_batch(chart, x_ref, e, vis, baseline, disparity, focal, pseudo, alph
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
-        if chart == 1:
+        if chart == CHART_ALIGNED:
             ka._measure_aligned(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
                                 compute_jac, hx[b], Hval[b], xt, D, dD)  # fmt: skip
         else:
@@ -105,9 +106,9 @@ def measure_batch(chart, x_ref, e, vis, baseline, disparity, focal, pseudo, alph
 
 def measurement_columns(chart: int, ne: int, vis: np.ndarray, channels: int, pseudo: bool) -> np.ndarray:
     """Column indices ``(m, 16)`` of the row-sparse ``H_e`` of ``measure_batch`` (the chart's own layout)."""
-    return (ka if chart == 1 else kt).measurement_columns(ne, vis, channels, pseudo)
+    return (ka if chart == CHART_ALIGNED else kt).measurement_columns(ne, vis, channels, pseudo)
 
 
 def dense(chart: int, Hval: np.ndarray, cols: np.ndarray, ne: int) -> np.ndarray:
     """Dense ``H_e (B, m, ne)`` from the row-sparse one (the aligned chart's virtual columns added to every point)."""
-    return ka.dense(Hval, cols, ne) if chart == 1 else dense_rows(Hval, cols, ne)
+    return ka.dense(Hval, cols, ne) if chart == CHART_ALIGNED else dense_rows(Hval, cols, ne)

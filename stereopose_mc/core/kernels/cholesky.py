@@ -36,9 +36,8 @@ _xxgemm = types.ExternalFunction("numba_xxgemm", types.intc(
 _NOTRANS, _TRANS = 110, 116  # ord("n"), ord("t")
 
 # _upper_blocked's blocks: a BLAS product takes off the rows above a block of CHOL_BLOCK rows, then one per CHOL_ROWS
-# rows inside it takes off those of the block above them, and each row its own pair's (measured at n = 59-134, single
-# thread: 8 / 2 fastest, 16 / 2 within 3 %; one level of blocks, 2 rows: 10-20 % slower; blocks of 16-32 rows solved by
-# rows alone: slower than potrf)
+# rows inside it takes off those of the block above them, and each row its own pair's (8 / 2: the fastest measured on
+# the large path's sizes, benchmarks/kernels_bench.py)
 CHOL_BLOCK = 8
 CHOL_ROWS = 2
 
@@ -126,9 +125,9 @@ def _upper_blocked(U):
     a block of ``CHOL_BLOCK`` rows first takes off all the rows above it by one BLAS product (``U[j0:j1, j0:] -=
     U[:j0, j0:j1]^T U[:j0, j0:]``, column-major: ``U^T[j0:, j0:j1] -= U^T[j0:, :j0] U[:j0, j0:j1]``), within it each
     pair of rows (``CHOL_ROWS``) the block's rows above it the same way, and each row its pair's first row
-    (``model._combine_rows``). 30-35 % faster than LAPACK's (OpenBLAS's) ``potrf`` at n = 104-134, 25 % at 74, its
-    numbers to round-off (``potrf`` blocks likewise, by other blocks); ``potrf`` stays below ``LARGE_N``'s sizes,
-    where the two are within a few percent. ``U`` must be C-contiguous (the kernels' scratch); any other layout goes to
+    (``model._combine_rows``): faster than LAPACK's (OpenBLAS's) ``potrf`` on the large path's sizes, its numbers
+    to round-off (``potrf`` blocks likewise, by other blocks); ``potrf`` stays below ``LARGE_N``, where the two are
+    even. ``U`` must be C-contiguous (the kernels' scratch); any other layout goes to
     ``potrf`` (the same factor)."""
     n = U.shape[0]
     if n == 0 or U.strides[1] != 8 or U.strides[0] != 8 * n:
@@ -185,8 +184,8 @@ def _lower_to_upper(A, U):
 def _upper_rows(A, U, recip=True):
     """Upper ``U`` with ``U^T U = A`` (the lower triangle of ``A`` read), row by row: ``U[j, j:] = (A[j:, j] - sum_{k<j}
     U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``model._combine_rows``, contiguous); False if
-    ``A`` is not positive definite (a pivot not > 0, NaN included). Written out, for small blocks: 0.36 against
-    ``potrf``'s 0.46 us at 15 x 15, 1.76 against 1.54 at 30 x 30. ``recip``: a row is multiplied by the reciprocal
+    ``A`` is not positive definite (a pivot not > 0, NaN included). Written out, for small blocks (faster than
+    ``potrf`` there, slower past ``consistency.ROWS_MAX``). ``recip``: a row is multiplied by the reciprocal
     of its pivot's square root; else divided by it (``_cholesky_small``'s numbers, which the NEES's scalar 2 x 2 and
     3 x 3 blocks repeat bit for bit)."""
     n = A.shape[0]

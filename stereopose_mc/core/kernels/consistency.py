@@ -42,12 +42,15 @@ import math
 import numpy as np
 from numba import njit
 
+from ..layout import (E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, E_SHIFT, K_SIZE, OMEGA, POINTS, QUAT, RHO,
+                      RHO_DOT, VEC)  # fmt: skip
 from . import attitude as _att
 from . import writable as _writable
 from ._refs import borrow, keep
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward, _upper_rows
-from .model import _dot, _dot_row, _dot_rows, _mirror_lower
+from .model import Q_END, _dot, _dot_row, _dot_rows, _mirror_lower
+from .model import n_points as _n_points
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -73,13 +76,13 @@ def _mahalanobis(e, P, L, w):
     return s
 
 
-ROWS_MAX = 24  # _mahalanobis_lapack: the written-out factorization up to this size (potrf is faster at 30 x 30)
+ROWS_MAX = 24  # _mahalanobis_lapack: the written-out factorization up to this size (potrf is faster past it)
 
 
 @njit(**_JIT)
 def _mahalanobis_lapack(e, P, L, w):
     """``_mahalanobis`` of the points' block (3N x 3N): up to ``ROWS_MAX`` rows by ``_upper_rows`` (written out, four
-    rows per pass: 0.36 against ``potrf``'s 0.46 us at 15 x 15, case B's), past it by LAPACK's ``potrf``
+    rows per pass: faster than ``potrf`` on small blocks), past it by LAPACK's ``potrf``
     (``_cholesky``); NaN if ``P`` is not positive definite."""
     n = e.shape[0]
     if n > ROWS_MAX:
@@ -179,7 +182,7 @@ def _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp, N, c0, c1):
     ``Y[a] = (the row's other non-zeros) P + Wp[a] . Sp``, ``Sp[c] = sum_i P[12 + 3 i + c]`` (the
     point rows of ``P`` summed once per trial): 3 terms per row instead of ``3N``; on the columns ``c0:c1``.
     """
-    p0, p1 = 12, 12 + 3 * N
+    p0, p1 = E_POINTS, E_POINTS + VEC * N
     for a in range(hi - lo):
         r = lo + a
         for c in range(c0, c1):
@@ -225,15 +228,15 @@ def _gauge_forward(R, U, N):
     """
     ne = R.shape[0]
     for j in range(3):
-        for i in range(12):
+        for i in range(E_POINTS):
             U[j, i] = 0.0
-    for i in range(12, ne):
-        j = (i - 12) % 3
-        p = i < 12 + 3 * N  # a point's row: G_j is 1 there for j = (i - 12) % 3
+    for i in range(E_POINTS, ne):
+        j = (i - E_POINTS) % VEC
+        p = i < E_POINTS + VEC * N  # a point's row: G_j is 1 there for j = (i - E_POINTS) % VEC
         s0 = 1.0 if p and j == 0 else 0.0
         s1 = 1.0 if p and j == 1 else 0.0
         s2 = 1.0 if p and j == 2 else 0.0
-        for k in range(12, i):
+        for k in range(E_POINTS, i):
             c = R[ne - 1 - k, i]
             s0 -= c * U[0, k]
             s1 -= c * U[1, k]
@@ -249,14 +252,15 @@ def _estimation_error(xh, xt, nh, nt, eps, tmp, dq):
     """The attitude-chart error anchored at the truth, ``x_hat = x_true [+] eps`` (``errorstate.estimation_error``;
     ``nh, nt``: the quaternions' norms)."""
     ne = eps.shape[0]
-    for r in range(9):
+    for r in range(E_ROT):
         eps[r] = xh[r] - xt[r]
-    for r in range(12, ne):
-        eps[r] = xh[r + 1] - xt[r + 1]
-    tmp[0], tmp[1], tmp[2], tmp[3] = xt[9] / nt, -xt[10] / nt, -xt[11] / nt, -xt[12] / nt
-    _qmul(xh[9:13], tmp, dq)
+    for r in range(E_POINTS, ne):
+        eps[r] = xh[r + E_SHIFT] - xt[r + E_SHIFT]
+    q = QUAT
+    tmp[0], tmp[1], tmp[2], tmp[3] = xt[q] / nt, -xt[q + 1] / nt, -xt[q + 2] / nt, -xt[q + 3] / nt
+    _qmul(xh[QUAT:Q_END], tmp, dq)
     for j in range(3):
-        eps[9 + j] = 2.0 * (dq[1 + j] / nh) / (dq[0] / nh)
+        eps[E_ROT + j] = 2.0 * (dq[1 + j] / nh) / (dq[0] / nh)
 
 
 @njit(**_JIT)
@@ -266,43 +270,46 @@ def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
     and ``vh = D P_bar_hat`` from ``_local``; ``Wp`` gets the point columns' coefficients of the rho and rho_dot
     rows (``_block_points``)."""
     ne = cnt.shape[0]
-    wh = xh[6:9]
+    wh = xh[OMEGA : OMEGA + VEC]
     for r in range(ne):
         cnt[r] = 0
+    # (rows: the attitude chart's eps, columns: the aligned chart's e; the same offsets E_*)
     for r in range(3):
-        _put(cnt, cols, vals, r, r, 1.0)  # d rho / d e_c
-        _put(cnt, cols, vals, 3 + r, 3 + r, 1.0)  # d rho_dot / d e_cdot
-        _put(cnt, cols, vals, 6 + r, 6 + r, 1.0)
+        _put(cnt, cols, vals, E_RHO + r, E_RHO + r, 1.0)  # d rho / d e_c
+        _put(cnt, cols, vals, E_RHO_DOT + r, E_RHO_DOT + r, 1.0)  # d rho_dot / d e_cdot
+        _put(cnt, cols, vals, E_OMEGA + r, E_OMEGA + r, 1.0)
         for c in range(3):
-            _put(cnt, cols, vals, 9 + r, 9 + c, D[r, c])  # a = D delta
+            _put(cnt, cols, vals, E_ROT + r, E_ROT + c, D[r, c])  # a = D delta
     # [v x] on e_omega in rho_dot
-    _put(cnt, cols, vals, 3, 7, -vh[2])
-    _put(cnt, cols, vals, 3, 8, vh[1])
-    _put(cnt, cols, vals, 4, 6, vh[2])
-    _put(cnt, cols, vals, 4, 8, -vh[0])
-    _put(cnt, cols, vals, 5, 6, -vh[1])
-    _put(cnt, cols, vals, 5, 7, vh[0])
+    d, o = E_RHO_DOT, E_OMEGA
+    _put(cnt, cols, vals, d, o + 1, -vh[2])
+    _put(cnt, cols, vals, d, o + 2, vh[1])
+    _put(cnt, cols, vals, d + 1, o, vh[2])
+    _put(cnt, cols, vals, d + 1, o + 2, -vh[0])
+    _put(cnt, cols, vals, d + 2, o, -vh[1])
+    _put(cnt, cols, vals, d + 2, o + 1, vh[0])
     for r in range(3):
         for c in range(3):
             Wp[r, c] = -D[r, c] / N
             # [omega x] D
             Wp[3 + r, c] = -(wh[(r + 1) % 3] * D[(r + 2) % 3, c] - wh[(r + 2) % 3] * D[(r + 1) % 3, c]) / N
     for i in range(N):
-        p = xh[13 + 3 * i : 16 + 3 * i]
+        p = xh[POINTS + VEC * i : POINTS + VEC * (i + 1)]
         for r in range(3):
             for c in range(3):
-                _put(cnt, cols, vals, r, 12 + 3 * i + c, Wp[r, c])
-                _put(cnt, cols, vals, 3 + r, 12 + 3 * i + c, Wp[3 + r, c])
-            _put(cnt, cols, vals, 12 + 3 * i + r, 12 + 3 * i + r, 1.0)
+                _put(cnt, cols, vals, E_RHO + r, E_POINTS + VEC * i + c, Wp[r, c])
+                _put(cnt, cols, vals, E_RHO_DOT + r, E_POINTS + VEC * i + c, Wp[3 + r, c])
+            _put(cnt, cols, vals, E_POINTS + VEC * i + r, E_POINTS + VEC * i + r, 1.0)
         # [P_i x] on delta
-        _put(cnt, cols, vals, 12 + 3 * i, 10, -p[2])
-        _put(cnt, cols, vals, 12 + 3 * i, 11, p[1])
-        _put(cnt, cols, vals, 13 + 3 * i, 9, p[2])
-        _put(cnt, cols, vals, 13 + 3 * i, 11, -p[0])
-        _put(cnt, cols, vals, 14 + 3 * i, 9, -p[1])
-        _put(cnt, cols, vals, 14 + 3 * i, 10, p[0])
-    for j in range(2):
-        _put(cnt, cols, vals, ne - 2 + j, ne - 2 + j, 1.0)
+        r, a = E_POINTS + VEC * i, E_ROT
+        _put(cnt, cols, vals, r, a + 1, -p[2])
+        _put(cnt, cols, vals, r, a + 2, p[1])
+        _put(cnt, cols, vals, r + 1, a, p[2])
+        _put(cnt, cols, vals, r + 1, a + 2, -p[0])
+        _put(cnt, cols, vals, r + 2, a, -p[1])
+        _put(cnt, cols, vals, r + 2, a + 1, p[0])
+    for j in range(ne - K_SIZE, ne):
+        _put(cnt, cols, vals, j, j, 1.0)
 
 
 @njit(**_JIT)
@@ -324,15 +331,15 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
     _gauge_forward(Rc, U, N)
     for j in range(3):
         for k in range(j):
-            s = _dot_rows(U, k, U, j, 12, ne)
-            for i in range(12, ne):
+            s = _dot_rows(U, k, U, j, E_POINTS, ne)
+            for i in range(E_POINTS, ne):
                 U[j, i] -= s * U[k, i]
-        s = math.sqrt(_dot_rows(U, j, U, j, 12, ne))
-        for i in range(12, ne):
+        s = math.sqrt(_dot_rows(U, j, U, j, E_POINTS, ne))
+        for i in range(E_POINTS, ne):
             U[j, i] /= s
     for j in range(3):
-        s = _dot_row(U, j, w, 12, ne)
-        for i in range(12, ne):
+        s = _dot_row(U, j, w, E_POINTS, ne)
+        for i in range(E_POINTS, ne):
             w[i] -= s * U[j, i]
     out[1] = _dot(w, w, 0, ne)
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
@@ -344,14 +351,15 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
     for i in range(N):
         for a in range(3):
             for c in range(ne):
-                Sp[a, c] += P[12 + 3 * i + a, c]
+                Sp[a, c] += P[E_POINTS + VEC * i + a, c]
     for b in range(6):
-        lo = (0, 3, 6, 9, 12, 12 + 3 * N)[b]
-        hi = (3, 6, 9, 12, 12 + 3 * N, ne)[b]
+        p1 = E_POINTS + VEC * N
+        lo = (E_RHO, E_RHO_DOT, E_OMEGA, E_ROT, E_POINTS, p1)[b]
+        hi = (E_RHO_DOT, E_OMEGA, E_ROT, E_POINTS, p1, ne)[b]
         # the columns of the block's non-zeros: rho (and rho_dot, omega) and the points; omega; delta; delta and
         # the points; k
-        c0 = (0, 3, 6, 9, 9, 12 + 3 * N)[b]
-        c1 = (12 + 3 * N, 12 + 3 * N, 9, 12, 12 + 3 * N, ne)[b]
+        c0 = (E_RHO, E_RHO_DOT, E_OMEGA, E_ROT, E_ROT, p1)[b]
+        c1 = (p1, p1, E_ROT, E_POINTS, p1, ne)[b]
         m = hi - lo
         if b < 2:
             _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N, c0, c1)
@@ -372,13 +380,16 @@ def _preimage(Tm, e, dx, N):
     for c in range(n):
         dx[c] = 0.0
     for a in range(3):
-        dx[6 + a] = e[6 + a]
+        dx[OMEGA + a] = e[E_OMEGA + a]
+    d, q = E_ROT, QUAT
     for j in range(4):
-        dx[9 + j] = 0.25 * (Tm[9, 9 + j] * e[9] + Tm[10, 9 + j] * e[10] + Tm[11, 9 + j] * e[11])
-    dx[n - 2], dx[n - 1] = e[ne - 2], e[ne - 1]
-    for r in range(12, 12 + 3 * N):
-        dx[r + 1] = e[r] - (Tm[r, 9] * dx[9] + Tm[r, 10] * dx[10] + Tm[r, 11] * dx[11] + Tm[r, 12] * dx[12])
-    for r in range(6):  # rho, rho_dot: their own column r (dx[r], still 0, adds nothing); the others solved before
+        dx[q + j] = 0.25 * (Tm[d, q + j] * e[d] + Tm[d + 1, q + j] * e[d + 1] + Tm[d + 2, q + j] * e[d + 2])
+    for j in range(K_SIZE):
+        dx[n - K_SIZE + j] = e[ne - K_SIZE + j]
+    for r in range(E_POINTS, E_POINTS + VEC * N):
+        dx[r + E_SHIFT] = e[r] - (Tm[r, q] * dx[q] + Tm[r, q + 1] * dx[q + 1] + Tm[r, q + 2] * dx[q + 2]
+                                  + Tm[r, q + 3] * dx[q + 3])  # fmt: skip
+    for r in range(E_OMEGA):  # rho, rho_dot: their own column r (dx[r], still 0, adds nothing); the others solved before
         dx[r] = e[r] - _dot_row(Tm, r, dx, 0, n)
 
 
@@ -449,21 +460,22 @@ def _one_full(xh, P, Rp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
         for c in range(n):
             W[j, c] = 0.0
     for j in range(4):
-        W[1, 9 + j] = xh[9 + j] / nh  # t
+        W[1, QUAT + j] = xh[QUAT + j] / nh  # t
     for j in range(3):  # gauge column j (W[2 + j]): d P_i = e_j for every point, rho and rho_dot compensating
         for i in range(N):
-            W[2 + j, 13 + 3 * i + j] = 1.0
-        for r in range(6):
+            W[2 + j, POINTS + VEC * i + j] = 1.0
+        for r in range(E_OMEGA):  # e_c, e_cdot
             s = 0.0
             for i in range(N):
-                s += Tm[r, 13 + 3 * i + j]
+                s += Tm[r, POINTS + VEC * i + j]
             W[2 + j, r] = -s
     _forward5(Rp, W)
     out[0] = _project_off(W, 1, 5)
     out[1] = _dot_rows(W, 0, W, 0, 0, n)
     # --- blocks: rho, rho_dot, omega, the points and k are P's own; the attitude's is Xi_att P_qq Xi_att^T
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
-    q0, q1, q2, q3 = xh[9] / nh, xh[10] / nh, xh[11] / nh, xh[12] / nh
+    q = QUAT
+    q0, q1, q2, q3 = xh[q] / nh, xh[q + 1] / nh, xh[q + 2] / nh, xh[q + 3] / nh
     # Xi = Lb[:3, :4]: errorstate.attitude_map (attitude._error_map), 2 [R(q^*)]_vec; Y = Xi P_qq in C[3:6, :4];
     # Ca = Xi P_qq Xi^T in C[:3, :3] (indexed in place: no views, whose reference counts cost atomic operations)
     Lb[0, 0], Lb[0, 1], Lb[0, 2], Lb[0, 3] = -2.0 * q1, 2.0 * q0, -2.0 * q3, 2.0 * q2
@@ -471,20 +483,21 @@ def _one_full(xh, P, Rp, xt, N, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp,
     Lb[2, 0], Lb[2, 1], Lb[2, 2], Lb[2, 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
     for a in range(3):
         for c in range(4):
-            C[3 + a, c] = Lb[a, 0] * P[9, 9 + c] + Lb[a, 1] * P[10, 9 + c] + Lb[a, 2] * P[11, 9 + c] + \
-                Lb[a, 3] * P[12, 9 + c]  # fmt: skip
+            C[3 + a, c] = Lb[a, 0] * P[q, q + c] + Lb[a, 1] * P[q + 1, q + c] + Lb[a, 2] * P[q + 2, q + c] + \
+                Lb[a, 3] * P[q + 3, q + c]  # fmt: skip
     for a in range(3):
         for b in range(a + 1):
             s = C[3 + a, 0] * Lb[b, 0] + C[3 + a, 1] * Lb[b, 1] + C[3 + a, 2] * Lb[b, 2] + C[3 + a, 3] * Lb[b, 3]
             C[a, b] = s
             C[b, a] = s
-    p1 = 12 + 3 * N
-    out[2] = _mahalanobis_small(eps, 0, P, 0, 3)
-    out[3] = _mahalanobis_small(eps, 3, P, 3, 3)
-    out[4] = _mahalanobis_small(eps, 6, P, 6, 3)
-    out[5] = _mahalanobis_small(eps, 9, C, 0, 3)
-    out[6] = _mahalanobis_lapack(eps[12:p1], P[13 : p1 + 1, 13 : p1 + 1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
-    out[7] = _mahalanobis_small(eps, p1, P, p1 + 1, ne - p1)  # (k: 2 x 2)
+    p1 = E_POINTS + VEC * N
+    out[2] = _mahalanobis_small(eps, E_RHO, P, RHO, VEC)
+    out[3] = _mahalanobis_small(eps, E_RHO_DOT, P, RHO_DOT, VEC)
+    out[4] = _mahalanobis_small(eps, E_OMEGA, P, OMEGA, VEC)
+    out[5] = _mahalanobis_small(eps, E_ROT, C, 0, VEC)
+    p, n1 = POINTS, p1 + E_SHIFT
+    out[6] = _mahalanobis_lapack(eps[E_POINTS:p1], P[p:n1, p:n1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
+    out[7] = _mahalanobis_small(eps, p1, P, n1, ne - p1)  # (k: 2 x 2)
 
 
 @njit(**_JIT)
@@ -503,16 +516,16 @@ def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
     ne = xh.shape[0] - 1
     nh, nt = _local(xh, xt, e, D, Dt, R, dq, tmp, v3)
     _attitude_rows(xh, N, D, v3[2], cnt, cols, vals, Wp)
-    p1 = 12 + 3 * N
-    # W[0] = M e; W[1 + j] = M G_j (G_j: 1 on every point's row 12 + 3 i + j); W[4] unused (zero)
+    p1 = E_POINTS + VEC * N
+    # W[0] = M e; W[1 + j] = M G_j (G_j: 1 on every point's row E_POINTS + 3 i + j); W[4] unused (zero)
     for r in range(ne):
         s, g0, g1, g2 = 0.0, 0.0, 0.0, 0.0
         for k in range(cnt[r]):
             c = cols[r, k]
             v = vals[r, k]
             s += v * e[c]
-            if c >= 12 and c < p1:
-                j = (c - 12) % 3
+            if c >= E_POINTS and c < p1:
+                j = (c - E_POINTS) % VEC
                 if j == 0:
                     g0 += v
                 elif j == 1:
@@ -526,11 +539,9 @@ def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
     out[1] = _dot_rows(W, 0, W, 0, 0, ne)
     # --- blocks: P's own (rho, rho_dot, omega, attitude, the points, k)
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
-    out[2] = _mahalanobis(eps[0:3], P[0:3, 0:3], Lb, w)
-    out[3] = _mahalanobis(eps[3:6], P[3:6, 3:6], Lb, w)
-    out[4] = _mahalanobis(eps[6:9], P[6:9, 6:9], Lb, w)
-    out[5] = _mahalanobis(eps[9:12], P[9:12, 9:12], Lb, w)
-    out[6] = _mahalanobis_lapack(eps[12:p1], P[12:p1, 12:p1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
+    for k, o in enumerate((E_RHO, E_RHO_DOT, E_OMEGA, E_ROT)):
+        out[2 + k] = _mahalanobis(eps[o : o + VEC], P[o : o + VEC, o : o + VEC], Lb, w)
+    out[6] = _mahalanobis_lapack(eps[E_POINTS:p1], P[E_POINTS:p1, E_POINTS:p1], Lb[: 3 * N, : 3 * N], w[: 3 * N])
     out[7] = _mahalanobis(eps[p1:ne], P[p1:ne, p1:ne], Lb[: ne - p1, : ne - p1], w[: ne - p1])
 
 
@@ -538,7 +549,7 @@ def _one_att(xh, P, Rp, xt, N, out, e, eps, cnt, cols, vals, W, Lb, w, D, Dt, R,
 def _map_full(x, P, Tm, TP, Pt, Pa, Sp):
     """``Pa = T P T^T`` (lower triangle mirrored), ``T = aligned.error_map(x)``: ``TP = T P``, ``Pa = T (TP)^T``
     (``P`` symmetric) by ``_apply_error_map``, ``Pt`` the transposed scratch (``n x n-1``)."""
-    N = (x.shape[0] - 15) // 3
+    N = _n_points(x.shape[0])
     _error_map(x, Tm)
     _apply_error_map(Tm, N, P, TP, Sp)
     Pt[:, :] = TP.T
@@ -560,24 +571,26 @@ def errors_batch(x_hat, x_true):
     x_hat, x_true = borrow((x_hat, x_true))  # (_refs: the caller's; no reference counts in the views below)
     for t in range(B):
         xh, xt = x_hat[t], x_true[t]
-        for b in range(3):
+        for b, o in enumerate((RHO, RHO_DOT, OMEGA)):
             s = 0.0
-            for j in range(3 * b, 3 * b + 3):
+            for j in range(o, o + VEC):
                 d = xh[j] - xt[j]
                 s += d * d
             out[t, b] = math.sqrt(s)
         out[t, 2] *= rad
-        nt = math.sqrt(xt[9] * xt[9] + xt[10] * xt[10] + xt[11] * xt[11] + xt[12] * xt[12])
-        nh = math.sqrt(xh[9] * xh[9] + xh[10] * xh[10] + xh[11] * xh[11] + xh[12] * xh[12])
-        p0, p1, p2, p3 = xt[9] / nt, xt[10] / nt, xt[11] / nt, xt[12] / nt
-        q0, q1, q2, q3 = xh[9] / nh, -(xh[10] / nh), -(xh[11] / nh), -(xh[12] / nh)
+        p0, p1, p2, p3 = xt[QUAT], xt[QUAT + 1], xt[QUAT + 2], xt[QUAT + 3]
+        q0, q1, q2, q3 = xh[QUAT], xh[QUAT + 1], xh[QUAT + 2], xh[QUAT + 3]
+        nt = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2 + p3 * p3)
+        nh = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        p0, p1, p2, p3 = p0 / nt, p1 / nt, p2 / nt, p3 / nt
+        q0, q1, q2, q3 = q0 / nh, -(q1 / nh), -(q2 / nh), -(q3 / nh)
         e0 = p0 * q0 - p1 * q1 - p2 * q2 - p3 * q3
         e1 = p0 * q1 + p1 * q0 + p2 * q3 - p3 * q2
         e2 = p0 * q2 - p1 * q3 + p2 * q0 + p3 * q1
         e3 = p0 * q3 + p1 * q2 - p2 * q1 + p3 * q0
         out[t, 3] = 2.0 * math.atan2(math.sqrt(e1 * e1 + e2 * e2 + e3 * e3), abs(e0)) * rad
-        out[t, 4] = abs(xh[n - 2] - xt[n - 2])
-        out[t, 5] = abs(xh[n - 1] - xt[n - 1])
+        out[t, 4] = abs(xh[n - K_SIZE] - xt[n - K_SIZE])
+        out[t, 5] = abs(xh[n - K_SIZE + 1] - xt[n - K_SIZE + 1])
     return out
 
 
@@ -664,7 +677,7 @@ def _nees_scratch(n, m):
     float and one integer buffer (two allocations instead of 32: the update kernels make it at every call that
     evaluates NEES), grouped by shape."""
     ne = n - 1
-    k = 3 + 3 * ((n - 15) // 3)
+    k = VEC + VEC * _n_points(n)
     buf = np.empty(4 * ne * n + 7 * ne * ne + 2 * m * m + 8 * n + ne * (k + 11) + 71)  # the views below, in order
     ints = np.zeros(ne + ne * k, np.int64)
     sq, at = _take(buf, 0, 7, ne, ne)  # Mi, Pa, Lr, C, L, Lb, Y
@@ -698,7 +711,7 @@ def _nees_given(xh, P, xt, Rg, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, 
         return 0
     if not _factor_given(Rg):
         return -1
-    _one_full(xh, P, Rg, xt, (xh.shape[0] - 15) // 3, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
+    _one_full(xh, P, Rg, xt, _n_points(xh.shape[0]), out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, v3)
     return 1
 
 
@@ -714,7 +727,7 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
         Sp, Wp, W5 = ws  # fmt: skip
     n = xh.shape[0]
     ne = n - 1
-    N = (n - 15) // 3
+    N = _n_points(n)
     full = P.shape[0] == n
     mapped = full or attitude
     if not (_finite(xh) and _finite(xt) and _finite(P.ravel())):

@@ -29,10 +29,17 @@ import numpy as np
 from numba import njit, types
 from numba.extending import intrinsic
 
+from ..layout import COMMON, K_SIZE, OMEGA, POINTS, QUAT, QUAT_SIZE, R_K, REDUCED, RHO, RHO_DOT, TRANSLATION, VEC
+from ..layout import n_points as _layout_n_points
 from ._refs import borrow, keep
 
-N_SHARED = 13  # rho, rho_dot, omega, q
-NNZ = 16  # non-zero columns of one measurement row
+NNZ = COMMON + VEC  # non-zero columns of one measurement row: rho, rho_dot, omega, q and one point
+H_POINT = COMMON  # a feature row's point columns in the row-sparse H (before them: the state's own columns)
+PS_OMEGA, PS_QUAT, PS_K = 0, VEC, VEC + QUAT_SIZE  # a pseudo row's omega, q, k in the row-sparse H
+PS_NNZ = PS_K + K_SIZE
+Q_END = QUAT + QUAT_SIZE
+
+n_points = njit(inline="always", error_model="numpy")(_layout_n_points)  # core.layout's, inside the kernels
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -211,15 +218,15 @@ def _euler_terms(wT, k1, k2, g, G, dgdk):
 def _f(x, rL, nd, ndd, mu, out, D):
     """``out = f(x)`` for one trial (``dynamics.f``); ``D`` is 3 x 3 scratch."""
     n = x.shape[0]
-    X, Y, Z = x[0], x[1], x[2]
-    vx, vy = x[3], x[4]
+    X, Y, Z = x[RHO], x[RHO + 1], x[RHO + 2]
+    vx, vy = x[RHO_DOT], x[RHO_DOT + 1]
     R3 = ((rL + X) ** 2 + Y * Y + Z * Z) ** 1.5
-    out[0], out[1], out[2] = x[3], x[4], x[5]
-    out[3] = 2.0 * nd * vy + ndd * Y + nd * nd * X - mu * (rL + X) / R3 + mu / (rL * rL)
-    out[4] = -2.0 * nd * vx - ndd * X + nd * nd * Y - mu * Y / R3
-    out[5] = -mu * Z / R3
-    _dcm(x[9:13], D)
-    w0, w1, w2 = x[6], x[7], x[8]
+    out[RHO], out[RHO + 1], out[RHO + 2] = x[RHO_DOT], x[RHO_DOT + 1], x[RHO_DOT + 2]
+    out[RHO_DOT] = 2.0 * nd * vy + ndd * Y + nd * nd * X - mu * (rL + X) / R3 + mu / (rL * rL)
+    out[RHO_DOT + 1] = -2.0 * nd * vx - ndd * X + nd * nd * Y - mu * Y / R3
+    out[RHO_DOT + 2] = -mu * Z / R3
+    _dcm(x[QUAT:Q_END], D)
+    w0, w1, w2 = x[OMEGA], x[OMEGA + 1], x[OMEGA + 2]
     W2 = w2 + nd
     # w_T = D^T (w + w_L); w_rel_T = D^T w
     t0 = D[0, 0] * w0 + D[1, 0] * w1 + D[2, 0] * W2
@@ -228,22 +235,22 @@ def _f(x, rL, nd, ndd, mu, out, D):
     r0 = D[0, 0] * w0 + D[1, 0] * w1 + D[2, 0] * w2
     r1 = D[0, 1] * w0 + D[1, 1] * w1 + D[2, 1] * w2
     r2 = D[0, 2] * w0 + D[1, 2] * w1 + D[2, 2] * w2
-    J0 = math.exp(x[n - 2])
-    J2 = math.exp(-x[n - 1])
+    J0 = math.exp(x[n - K_SIZE])
+    J2 = math.exp(-x[n - K_SIZE + 1])
     # Euler: w_T' = -(w_T x I w_T) / I
     e0 = -(t1 * (J2 * t2) - t2 * t1) / J0
     e1 = -(t2 * (J0 * t0) - t0 * (J2 * t2))
     e2 = -(t0 * t1 - t1 * (J0 * t0)) / J2
     # w' = D w_T' - w_L x w - w_L'
-    out[6] = D[0, 0] * e0 + D[0, 1] * e1 + D[0, 2] * e2 + nd * w1
-    out[7] = D[1, 0] * e0 + D[1, 1] * e1 + D[1, 2] * e2 - nd * w0
-    out[8] = D[2, 0] * e0 + D[2, 1] * e1 + D[2, 2] * e2 - ndd
-    q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
-    out[9] = 0.5 * (-q1 * r0 - q2 * r1 - q3 * r2)
-    out[10] = 0.5 * (q0 * r0 + q2 * r2 - q3 * r1)
-    out[11] = 0.5 * (q0 * r1 - q1 * r2 + q3 * r0)
-    out[12] = 0.5 * (q0 * r2 + q1 * r1 - q2 * r0)
-    for i in range(13, n):
+    out[OMEGA] = D[0, 0] * e0 + D[0, 1] * e1 + D[0, 2] * e2 + nd * w1
+    out[OMEGA + 1] = D[1, 0] * e0 + D[1, 1] * e1 + D[1, 2] * e2 - nd * w0
+    out[OMEGA + 2] = D[2, 0] * e0 + D[2, 1] * e1 + D[2, 2] * e2 - ndd
+    q0, q1, q2, q3 = x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3]
+    out[QUAT] = 0.5 * (-q1 * r0 - q2 * r1 - q3 * r2)
+    out[QUAT + 1] = 0.5 * (q0 * r0 + q2 * r2 - q3 * r1)
+    out[QUAT + 2] = 0.5 * (q0 * r1 - q1 * r2 + q3 * r0)
+    out[QUAT + 3] = 0.5 * (q0 * r2 + q1 * r1 - q2 * r0)
+    for i in range(COMMON, n):
         out[i] = 0.0
 
 
@@ -294,8 +301,9 @@ def propagate_batch(x, rL, nd, ndd, h, mu, substeps, renormalize):
             for i in range(n):
                 y[i] = y[i] + (h / 6.0) * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
         if renormalize:
-            qn = math.sqrt(y[9] * y[9] + y[10] * y[10] + y[11] * y[11] + y[12] * y[12])
-            for i in range(9, 13):
+            qn = math.sqrt(y[QUAT] * y[QUAT] + y[QUAT + 1] * y[QUAT + 1] + y[QUAT + 2] * y[QUAT + 2]
+                           + y[QUAT + 3] * y[QUAT + 3])  # fmt: skip
+            for i in range(QUAT, Q_END):
                 y[i] = y[i] / qn
         for i in range(n):
             out[b, i] = y[i]
@@ -314,25 +322,25 @@ def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD, ws):
     ``_F_SCRATCH`` floats.
     """
     n = x.shape[0]
-    for i in range(13):
-        for j in range(15):
+    for i in range(COMMON):
+        for j in range(REDUCED):
             Fr[i, j] = 0.0
-    Fr[0, 3] = Fr[1, 4] = Fr[2, 5] = 1.0
-    s0, s1, s2 = rL + x[0], x[1], x[2]
+    Fr[RHO, RHO_DOT] = Fr[RHO + 1, RHO_DOT + 1] = Fr[RHO + 2, RHO_DOT + 2] = 1.0
+    s0, s1, s2 = rL + x[RHO], x[RHO + 1], x[RHO + 2]
     R2 = s0 * s0 + s1 * s1 + s2 * s2
     cg = -mu / R2**1.5
     sv = (s0, s1, s2)
     for i in range(3):
         for j in range(3):
-            Fr[3 + i, j] = cg * ((1.0 if i == j else 0.0) - 3.0 * sv[i] * sv[j] / R2)
-    Fr[3, 0] += nd * nd
-    Fr[4, 1] += nd * nd
-    Fr[3, 1] += ndd
-    Fr[4, 0] -= ndd
-    Fr[3, 4] = 2.0 * nd
-    Fr[4, 3] = -2.0 * nd
-    _dcm_derivative(x[9:13], D, dD)
-    w = x[6:9]
+            Fr[RHO_DOT + i, RHO + j] = cg * ((1.0 if i == j else 0.0) - 3.0 * sv[i] * sv[j] / R2)
+    Fr[RHO_DOT, RHO] += nd * nd
+    Fr[RHO_DOT + 1, RHO + 1] += nd * nd
+    Fr[RHO_DOT, RHO + 1] += ndd
+    Fr[RHO_DOT + 1, RHO] -= ndd
+    Fr[RHO_DOT, RHO_DOT + 1] = 2.0 * nd
+    Fr[RHO_DOT + 1, RHO_DOT] = -2.0 * nd
+    _dcm_derivative(x[QUAT:Q_END], D, dD)
+    w = x[OMEGA : OMEGA + VEC]
     W = ws[0:3]
     W[0], W[1], W[2] = w[0], w[1], w[2] + nd
     wT = ws[3:6]
@@ -343,16 +351,16 @@ def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD, ws):
     g = ws[9:12]
     G = ws[12:21].reshape((3, 3))
     dgdk = ws[21:27].reshape((3, 2))
-    _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
+    _euler_terms(wT, x[n - K_SIZE], x[n - K_SIZE + 1], g, G, dgdk)
     DG = ws[27:36].reshape((3, 3))
     for i in range(3):
         for j in range(3):
             DG[i, j] = D[i, 0] * G[0, j] + D[i, 1] * G[1, j] + D[i, 2] * G[2, j]
     for i in range(3):
         for j in range(3):
-            Fr[6 + i, 6 + j] = DG[i, 0] * D[j, 0] + DG[i, 1] * D[j, 1] + DG[i, 2] * D[j, 2]
-    Fr[6, 7] += nd
-    Fr[7, 6] -= nd
+            Fr[OMEGA + i, OMEGA + j] = DG[i, 0] * D[j, 0] + DG[i, 1] * D[j, 1] + DG[i, 2] * D[j, 2]
+    Fr[OMEGA, OMEGA + 1] += nd
+    Fr[OMEGA + 1, OMEGA] -= nd
     dW = ws[36:39]
     dw = ws[39:42]
     for j in range(4):
@@ -360,44 +368,44 @@ def _F_reduced(x, rL, nd, ndd, mu, Fr, D, dD, ws):
             dW[i] = dD[j, 0, i] * W[0] + dD[j, 1, i] * W[1] + dD[j, 2, i] * W[2]
             dw[i] = dD[j, 0, i] * w[0] + dD[j, 1, i] * w[1] + dD[j, 2, i] * w[2]
         for i in range(3):
-            Fr[6 + i, 9 + j] = (dD[j, i, 0] * g[0] + dD[j, i, 1] * g[1] + dD[j, i, 2] * g[2]
+            Fr[OMEGA + i, QUAT + j] = (dD[j, i, 0] * g[0] + dD[j, i, 1] * g[1] + dD[j, i, 2] * g[2]
                                 + DG[i, 0] * dW[0] + DG[i, 1] * dW[1] + DG[i, 2] * dW[2])  # fmt: skip
         # q <- q_j: 1/2 (M(D^T w)[:, j] + Q(q) dD_j^T w)
-        q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
-        Fr[9, 9 + j] = 0.5 * (-q1 * dw[0] - q2 * dw[1] - q3 * dw[2])
-        Fr[10, 9 + j] = 0.5 * (q0 * dw[0] - q3 * dw[1] + q2 * dw[2])
-        Fr[11, 9 + j] = 0.5 * (q3 * dw[0] + q0 * dw[1] - q1 * dw[2])
-        Fr[12, 9 + j] = 0.5 * (-q2 * dw[0] + q1 * dw[1] + q0 * dw[2])
+        q0, q1, q2, q3 = x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3]
+        Fr[QUAT, QUAT + j] = 0.5 * (-q1 * dw[0] - q2 * dw[1] - q3 * dw[2])
+        Fr[QUAT + 1, QUAT + j] = 0.5 * (q0 * dw[0] - q3 * dw[1] + q2 * dw[2])
+        Fr[QUAT + 2, QUAT + j] = 0.5 * (q3 * dw[0] + q0 * dw[1] - q1 * dw[2])
+        Fr[QUAT + 3, QUAT + j] = 0.5 * (-q2 * dw[0] + q1 * dw[1] + q0 * dw[2])
     # M(v) = d(q (x) [0, v])/dq
-    Fr[9, 10] += -0.5 * v[0]
-    Fr[9, 11] += -0.5 * v[1]
-    Fr[9, 12] += -0.5 * v[2]
-    Fr[10, 9] += 0.5 * v[0]
-    Fr[10, 11] += 0.5 * v[2]
-    Fr[10, 12] += -0.5 * v[1]
-    Fr[11, 9] += 0.5 * v[1]
-    Fr[11, 10] += -0.5 * v[2]
-    Fr[11, 12] += 0.5 * v[0]
-    Fr[12, 9] += 0.5 * v[2]
-    Fr[12, 10] += 0.5 * v[1]
-    Fr[12, 11] += -0.5 * v[0]
+    Fr[QUAT, QUAT + 1] += -0.5 * v[0]
+    Fr[QUAT, QUAT + 2] += -0.5 * v[1]
+    Fr[QUAT, QUAT + 3] += -0.5 * v[2]
+    Fr[QUAT + 1, QUAT] += 0.5 * v[0]
+    Fr[QUAT + 1, QUAT + 2] += 0.5 * v[2]
+    Fr[QUAT + 1, QUAT + 3] += -0.5 * v[1]
+    Fr[QUAT + 2, QUAT] += 0.5 * v[1]
+    Fr[QUAT + 2, QUAT + 1] += -0.5 * v[2]
+    Fr[QUAT + 2, QUAT + 3] += 0.5 * v[0]
+    Fr[QUAT + 3, QUAT] += 0.5 * v[2]
+    Fr[QUAT + 3, QUAT + 1] += 0.5 * v[1]
+    Fr[QUAT + 3, QUAT + 2] += -0.5 * v[0]
     for i in range(3):
         for j in range(2):
-            Fr[6 + i, 13 + j] = D[i, 0] * dgdk[0, j] + D[i, 1] * dgdk[1, j] + D[i, 2] * dgdk[2, j]
+            Fr[OMEGA + i, R_K + j] = D[i, 0] * dgdk[0, j] + D[i, 1] * dgdk[1, j] + D[i, 2] * dgdk[2, j]
     # q <- w: 1/2 Q(q) D^T
-    q0, q1, q2, q3 = x[9], x[10], x[11], x[12]
+    q0, q1, q2, q3 = x[QUAT], x[QUAT + 1], x[QUAT + 2], x[QUAT + 3]
     for j in range(3):
-        Fr[9, 6 + j] = 0.5 * (-q1 * D[j, 0] - q2 * D[j, 1] - q3 * D[j, 2])
-        Fr[10, 6 + j] = 0.5 * (q0 * D[j, 0] - q3 * D[j, 1] + q2 * D[j, 2])
-        Fr[11, 6 + j] = 0.5 * (q3 * D[j, 0] + q0 * D[j, 1] - q1 * D[j, 2])
-        Fr[12, 6 + j] = 0.5 * (-q2 * D[j, 0] + q1 * D[j, 1] + q0 * D[j, 2])
+        Fr[QUAT, OMEGA + j] = 0.5 * (-q1 * D[j, 0] - q2 * D[j, 1] - q3 * D[j, 2])
+        Fr[QUAT + 1, OMEGA + j] = 0.5 * (q0 * D[j, 0] - q3 * D[j, 1] + q2 * D[j, 2])
+        Fr[QUAT + 2, OMEGA + j] = 0.5 * (q3 * D[j, 0] + q0 * D[j, 1] - q1 * D[j, 2])
+        Fr[QUAT + 3, OMEGA + j] = 0.5 * (-q2 * D[j, 0] + q1 * D[j, 1] + q0 * D[j, 2])
 
 
 @njit(**_JIT)
 def F_reduced_batch(x, rL, nd, ndd, mu):
     """``F[:, 0:13, c]`` (``B, 13, 15``), ``c = [0..12, n-2, n-1]``: the only non-zero block of ``F``."""
     B = x.shape[0]
-    out = np.empty((B, 13, 15))
+    out = np.empty((B, COMMON, REDUCED))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     ws = np.empty(_F_SCRATCH)
@@ -416,11 +424,11 @@ def F_batch(x, rL, nd, ndd, mu):
     Fr = F_reduced_batch(x, rL, nd, ndd, mu)
     out = np.zeros((B, n, n))
     for b in range(B):
-        for i in range(13):
-            for j in range(13):
+        for i in range(COMMON):
+            for j in range(COMMON):
                 out[b, i, j] = Fr[b, i, j]
-            out[b, i, n - 2] = Fr[b, i, 13]
-            out[b, i, n - 1] = Fr[b, i, 14]
+            for j in range(K_SIZE):
+                out[b, i, n - K_SIZE + j] = Fr[b, i, R_K + j]
     return out
 
 
@@ -437,39 +445,39 @@ def _taylor_reduced(Fr, dt, order, T, A, tmp):
     """
     # A = [[Fr dt], [0]] (15 x 15): its rows 0-12 (13, 14 are zero, never read); Phi15 = I + A/order, I + A Phi15 / j
     r = 1.0 / order
-    for i in range(13):
-        for j in range(15):
+    for i in range(COMMON):
+        for j in range(REDUCED):
             A[i, j] = Fr[i, j] * dt
             T[i, j] = (1.0 if i == j else 0.0) + A[i, j] * r
-    for i in range(13, 15):
-        for j in range(15):
+    for i in range(COMMON, REDUCED):
+        for j in range(REDUCED):
             T[i, j] = 1.0 if i == j else 0.0
     for jj in range(order - 1, 0, -1):
         # tmp = A[:13] T on the two blocks (rows 13, 14 of A are zero); constant bounds: unrolled
         # (A's exact zeros skipped, as predict_covariance_batch skips T's: rho's rows are [0, I dt], q's rows do not
         # see k; a finite T's sums are the same numbers without their exact-zero terms)
-        for i in range(6):
-            for j in range(6):
+        for i in range(TRANSLATION):
+            for j in range(TRANSLATION):
                 tmp[i, j] = 0.0
-            for k in range(6):
+            for k in range(TRANSLATION):
                 a = A[i, k]
                 if a != 0.0:
-                    for j in range(6):
+                    for j in range(TRANSLATION):
                         tmp[i, j] += a * T[k, j]
-        for i in range(6, 13):
-            for j in range(6, 15):
+        for i in range(TRANSLATION, COMMON):
+            for j in range(TRANSLATION, REDUCED):
                 tmp[i, j] = 0.0
-            for k in range(6, 15):
+            for k in range(TRANSLATION, REDUCED):
                 a = A[i, k]
                 if a != 0.0:
-                    for j in range(6, 15):
+                    for j in range(TRANSLATION, REDUCED):
                         tmp[i, j] += a * T[k, j]
         r = 1.0 / jj  # (a product by 1/j, not 63 + 36 divisions: exact for j = 1, 2, 4; within an ulp for j = 3)
-        for i in range(6):
-            for j in range(6):
+        for i in range(TRANSLATION):
+            for j in range(TRANSLATION):
                 T[i, j] = (1.0 if i == j else 0.0) + tmp[i, j] * r
-        for i in range(6, 13):
-            for j in range(6, 15):
+        for i in range(TRANSLATION, COMMON):
+            for j in range(TRANSLATION, REDUCED):
                 T[i, j] = (1.0 if i == j else 0.0) + tmp[i, j] * r
         # rows 13, 14 stay the identity (A is zero there); the entries off the blocks stay zero
 
@@ -478,16 +486,16 @@ def _taylor_reduced(Fr, dt, order, T, A, tmp):
 def transition_reduced_batch(Fr, dt, order):
     """``Phi[:, 0:13, c]`` (``B, 13, 15``) from ``F_reduced_batch``: the rest of ``Phi`` is the identity."""
     B = Fr.shape[0]
-    out = np.empty((B, 13, 15))
-    T = np.empty((15, 15))
-    A = np.empty((13, 15))
-    tmp = np.empty((13, 15))
+    out = np.empty((B, COMMON, REDUCED))
+    T = np.empty((REDUCED, REDUCED))
+    A = np.empty((COMMON, REDUCED))
+    tmp = np.empty((COMMON, REDUCED))
     own = (T, A, tmp)  # borrowed below (_refs), kept to the end
     Fb, T, A, tmp = borrow((Fr, T, A, tmp))
     for b in range(B):
         _taylor_reduced(Fb[b], dt, order, T, A, tmp)
-        for i in range(13):
-            for j in range(15):
+        for i in range(COMMON):
+            for j in range(REDUCED):
                 out[b, i, j] = T[i, j]
     keep(own)
     return out
@@ -509,50 +517,50 @@ def predict_covariance_batch(P, T, Q):
     """
     B, n, _ = P.shape
     out = np.empty((B, n, n))
-    cols = np.empty(15, np.int64)
-    for j in range(13):
+    cols = np.empty(REDUCED, np.int64)
+    for j in range(COMMON):
         cols[j] = j
-    cols[13], cols[14] = n - 2, n - 1
-    TP = np.empty((13, n))  # T P[c, :]
-    Tt = np.empty((15, 13))  # T^T
-    acc = np.empty(13)
+    for j in range(K_SIZE):
+        cols[R_K + j] = n - K_SIZE + j
+    TP = np.empty((COMMON, n))  # T P[c, :]
+    Tt = np.empty((REDUCED, COMMON))  # T^T
+    acc = np.empty(COMMON)
     for b in range(B):
         # T P[c, :] by scaled rows of P (contiguous, vectorized), not by dot products down its columns
-        # (the zeros of T, ~40 % of it (rho, rho_dot do not see the attitude), are skipped: a finite P's sums are
+        # (the zeros of T (rho, rho_dot do not see the attitude) are skipped: a finite P's sums are
         # the same numbers without their exact-zero terms)
-        for i in range(13):
+        for i in range(COMMON):
             for j in range(n):
                 TP[i, j] = 0.0
-            for l in range(15):
+            for l in range(REDUCED):
                 t = T[b, i, l]
                 if t != 0.0:
-                    cl = cols[l]  # (P's row read in place: as a view P[b, cols[l]], its reference count's atomic
-                    # increment and decrement between these stores cost 0.75 us per trial, a third of the kernel)
+                    cl = cols[l]  # (P's row read in place: a view's reference counting would cost more than the sums)
                     for j in range(n):
                         TP[i, j] += t * P[b, cl, j]
-            for l in range(15):
+            for l in range(REDUCED):
                 Tt[l, i] = T[b, i, l]
         for i in range(n):
             for j in range(n):
                 out[b, i, j] = P[b, i, j]
         # rows/cols 0..12 against the rest: (T P)[a, r]; against themselves: (T P)[a, c] T^T
-        for i in range(13):
-            for j in range(13, n):
+        for i in range(COMMON):
+            for j in range(COMMON, n):
                 out[b, i, j] = TP[i, j]
                 out[b, j, i] = TP[i, j]
             # acc = (T P)[i, c] T^T by T's blocks (_taylor_reduced): the translation's rows 0-5 have non-zeros in the
             # columns 0-5 only, the rotation's 6-12 in the columns 6-14: the terms left out are exact zeros
-            for j in range(13):
+            for j in range(COMMON):
                 acc[j] = 0.0
-            for l in range(6):
+            for l in range(TRANSLATION):
                 t = TP[i, l]  # cols[l] = l
-                for j in range(6):
+                for j in range(TRANSLATION):
                     acc[j] += t * Tt[l, j]
-            for l in range(6, 15):
+            for l in range(TRANSLATION, REDUCED):
                 t = TP[i, cols[l]]
-                for j in range(6, 13):
+                for j in range(TRANSLATION, COMMON):
                     acc[j] += t * Tt[l, j]
-            for j in range(i, 13):
+            for j in range(i, COMMON):
                 out[b, i, j] = acc[j]
                 out[b, j, i] = acc[j]
         # k rows/cols (n-2, n-1) are not in 0..12: they took (T P)[a, k] above
@@ -576,24 +584,23 @@ def _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hv
     ``ws``: a 12 x 7 scratch matrix (no allocation per feature): ``J (9 x 6)`` in its top left, ``K0 (3 x 7)`` in
     its last rows. The rows, the point, ``r`` and ``w`` are indexed in place or held as scalars, not as array
     views: a view costs an atomic increment and decrement of its reference count, which between the stores
-    of these rows cost more than their arithmetic (measured: 0.75 us per trial in the covariance predict's
-    loop of the same kind). The features are looped over here, not by the caller: each array a compiled
-    function takes costs the same two operations per call, ~12 per feature.
+    of these rows cost more than their arithmetic. The features are looped over here, not by the caller: each
+    array a compiled function takes costs the same two operations per call.
     """
     C = 9 if disparity else 8
     for f in range(vis.shape[0]):
         i = vis[f]
         o = f * C
-        p0 = 13 + 3 * i
+        p0 = POINTS + VEC * i
         P0, P1, P2 = x[p0], x[p0 + 1], x[p0 + 2]
-        w0, w1, w2 = x[6], x[7], x[8]
+        w0, w1, w2 = x[OMEGA], x[OMEGA + 1], x[OMEGA + 2]
         r0 = D[0, 0] * P0 + D[0, 1] * P1 + D[0, 2] * P2
         r1 = D[1, 0] * P0 + D[1, 1] * P1 + D[1, 2] * P2
         r2 = D[2, 0] * P0 + D[2, 1] * P1 + D[2, 2] * P2
-        X, Y, Z = x[0] + r0, x[1] + r1, x[2] + r2
-        vX = x[3] + (w1 * r2 - w2 * r1)
-        vY = x[4] + (w2 * r0 - w0 * r2)
-        vZ = x[5] + (w0 * r1 - w1 * r0)
+        X, Y, Z = x[RHO] + r0, x[RHO + 1] + r1, x[RHO + 2] + r2
+        vX = x[RHO_DOT] + (w1 * r2 - w2 * r1)
+        vY = x[RHO_DOT + 1] + (w2 * r0 - w0 * r2)
+        vZ = x[RHO_DOT + 2] + (w0 * r1 - w1 * r0)
         iy = 1.0 / Y
         xl = X - baseline
         u_r, v_r, u_l = X * iy, Z * iy, xl * iy
@@ -642,18 +649,18 @@ def _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hv
             jp0, jp1, jp2 = ws[c, 0], ws[c, 1], ws[c, 2]
             jv0, jv1, jv2 = ws[c, 3], ws[c, 4], ws[c, 5]
             rr = o + c
-            Hval[rr, 0], Hval[rr, 1], Hval[rr, 2] = jp0 * focal, jp1 * focal, jp2 * focal
-            Hval[rr, 3], Hval[rr, 4], Hval[rr, 5] = jv0 * focal, jv1 * focal, jv2 * focal
+            Hval[rr, RHO], Hval[rr, RHO + 1], Hval[rr, RHO + 2] = jp0 * focal, jp1 * focal, jp2 * focal
+            Hval[rr, RHO_DOT], Hval[rr, RHO_DOT + 1], Hval[rr, RHO_DOT + 2] = jv0 * focal, jv1 * focal, jv2 * focal
             # d/dw = -Jv [r x] = r x Jv
-            Hval[rr, 6] = (r1 * jv2 - r2 * jv1) * focal
-            Hval[rr, 7] = (r2 * jv0 - r0 * jv2) * focal
-            Hval[rr, 8] = (r0 * jv1 - r1 * jv0) * focal
+            Hval[rr, OMEGA] = (r1 * jv2 - r2 * jv1) * focal
+            Hval[rr, OMEGA + 1] = (r2 * jv0 - r0 * jv2) * focal
+            Hval[rr, OMEGA + 2] = (r0 * jv1 - r1 * jv0) * focal
             # d/d[q, P_i] = (Jp + Jv [w x]) K0 = (Jp + Jv x w) K0
             e0 = jp0 + (jv1 * w2 - jv2 * w1)
             e1 = jp1 + (jv2 * w0 - jv0 * w2)
             e2 = jp2 + (jv0 * w1 - jv1 * w0)
-            for j in range(7):
-                Hval[rr, 9 + j] = (e0 * ws[9, j] + e1 * ws[10, j] + e2 * ws[11, j]) * focal
+            for j in range(QUAT_SIZE + VEC):  # q, then the point (H_POINT = Q_END)
+                Hval[rr, QUAT + j] = (e0 * ws[9, j] + e1 * ws[10, j] + e2 * ws[11, j]) * focal
 
 
 @njit(**_JIT)
@@ -661,7 +668,7 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval, ws):
     """Euler residual ``h_pseudo`` (3,) and its 9 non-zero Jacobian columns ``[omega, q, k]`` (``Hval (3, 16)``);
     ``ws``: scratch of ``_MEASURE_SCRATCH`` floats."""
     n = x.shape[0]
-    w0, w1, w2 = x[6], x[7], x[8]
+    w0, w1, w2 = x[OMEGA], x[OMEGA + 1], x[OMEGA + 2]
     W = ws[0:3]
     W[0], W[1], W[2] = w0, w1, w2 + nd
     a = ws[3:6]
@@ -671,8 +678,8 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval, ws):
     wT = ws[6:9]
     for i in range(3):
         wT[i] = D[0, i] * W[0] + D[1, i] * W[1] + D[2, i] * W[2]
-    J0 = math.exp(x[n - 2])
-    J2 = math.exp(-x[n - 1])
+    J0 = math.exp(x[n - K_SIZE])
+    J2 = math.exp(-x[n - K_SIZE + 1])
     Iw0, Iw1, Iw2 = J0 * wT[0], wT[1], J2 * wT[2]
     gy0 = (wT[1] * Iw2 - wT[2] * Iw1) / J0
     gy1 = wT[2] * Iw0 - wT[0] * Iw2
@@ -685,25 +692,25 @@ def _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hrow, Hval, ws):
     g = ws[9:12]
     G = ws[12:21].reshape((3, 3))
     dgdk = ws[21:27].reshape((3, 2))
-    _euler_terms(wT, x[n - 2], x[n - 1], g, G, dgdk)
+    _euler_terms(wT, x[n - K_SIZE], x[n - K_SIZE + 1], g, G, dgdk)
     for i in range(3):
-        for c in range(16):
+        for c in range(NNZ):
             Hval[i, c] = 0.0
         # dh/dw = -G D^T + nd [D^T e_y, -D^T e_x, 0]
         for j in range(3):
-            Hval[i, j] = -(G[i, 0] * D[j, 0] + G[i, 1] * D[j, 1] + G[i, 2] * D[j, 2])
-        Hval[i, 0] += nd * D[1, i]
-        Hval[i, 1] -= nd * D[0, i]
+            Hval[i, PS_OMEGA + j] = -(G[i, 0] * D[j, 0] + G[i, 1] * D[j, 1] + G[i, 2] * D[j, 2])
+        Hval[i, PS_OMEGA] += nd * D[1, i]
+        Hval[i, PS_OMEGA + 1] -= nd * D[0, i]
     for j in range(4):
         for i in range(3):
             da = dD[j, 0, i] * a[0] + dD[j, 1, i] * a[1] + dD[j, 2, i] * a[2]
             s = 0.0
             for l in range(3):
                 s += G[i, l] * (dD[j, 0, l] * W[0] + dD[j, 1, l] * W[1] + dD[j, 2, l] * W[2])
-            Hval[i, 3 + j] = da - s
+            Hval[i, PS_QUAT + j] = da - s
     for i in range(3):
-        Hval[i, 7] = -dgdk[i, 0]
-        Hval[i, 8] = -dgdk[i, 1]
+        Hval[i, PS_K] = -dgdk[i, 0]
+        Hval[i, PS_K + 1] = -dgdk[i, 1]
 
 
 def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
@@ -728,15 +735,16 @@ def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
 def measurement_columns(n, vis, channels, pseudo):
     """Column indices ``(m, 16)`` of the row-sparse ``H`` of ``measure_batch``: a feature's rows see
     ``rho, rho_dot, omega, q`` and its point, the pseudo rows ``omega, q, k``."""
-    k = np.array([n - 2, n - 1])
-    return row_columns(vis, channels, np.arange(13), 13, np.arange(0), np.concatenate((np.arange(6, 13), k)), pseudo)
+    k = np.arange(n - K_SIZE, n)
+    return row_columns(vis, channels, np.arange(COMMON), POINTS, np.arange(0),
+                       np.concatenate((np.arange(OMEGA, Q_END), k)), pseudo)  # fmt: skip
 
 
 @njit(**_JIT)
 def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD):
     """``h`` and row-sparse ``H`` of one trial (``relnav.measurement_model``)."""
     C = 9 if disparity else 8
-    _dcm_derivative(x[9:13], D, dD)
+    _dcm_derivative(x[QUAT:Q_END], D, dD)
     nv = vis.shape[0]
     own = np.empty((12, 7))  # the rows' scratch: one allocation per call, not per feature
     ws = borrow(own)  # (_refs; kept to the end)
@@ -797,7 +805,7 @@ def _dense_batch(Hval, cols, n):
 
 def dense(Hval: np.ndarray, cols: np.ndarray, n: int) -> np.ndarray:
     """Dense ``(B, m, n)`` from the row-sparse ``H`` (duplicate padding columns carry value 0: the values are added,
-    as ``np.add.at`` would, in a compiled loop: numpy's ``add.at`` took ~30 us for one trial's 43 rows)."""
+    as ``np.add.at`` would, in a compiled loop: ``add.at`` is slow on small arrays)."""
     return _dense_batch(np.ascontiguousarray(Hval, dtype=float), np.ascontiguousarray(cols, dtype=np.int64), int(n))
 
 
@@ -805,6 +813,6 @@ def dense_transition(T: np.ndarray, n: int) -> np.ndarray:
     """Dense ``Phi (B, n, n)`` from ``transition_reduced_batch``'s block."""
     B = T.shape[0]
     Phi = np.broadcast_to(np.eye(n), (B, n, n)).copy()
-    c = np.r_[0:13, n - 2, n - 1]
-    Phi[:, 0:13, c] = T
+    c = np.r_[0:COMMON, n - K_SIZE : n]
+    Phi[:, 0:COMMON, c] = T
     return Phi

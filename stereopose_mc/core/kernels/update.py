@@ -7,7 +7,7 @@ trial at a time: every product with ``H`` touches only the 16 non-zero columns o
 ``omega, q, k``), the symmetric positive definite systems (the whitened ``A = I + Hw^T Hw``
 of both updates, the EKF being one Gauss-Newton step of the IEKF, and ``P-`` itself) are
 solved by Cholesky factorizations (LAPACK's ``potrf`` in place, ``_cholesky``; past ``LARGE_N`` columns by
-blocks of rows around BLAS products, ``cholesky._upper_blocked``: 25-35 % faster there); ``P+`` is the
+blocks of rows around BLAS products, ``cholesky._upper_blocked``, faster there); ``P+`` is the
 Joseph form of the numpy path evaluated for the optimal gain (``L A^-1 L^T``, positive
 semi-definite by construction: the same matrix to round-off, exactly symmetric); the IEKF's iterations,
 step control (line search on the MAP cost with step halving, or Levenberg-Marquardt's damped
@@ -30,8 +30,7 @@ the number of points): the rows of ``Hw`` stop where ``L`` is zero (``_whiten_st
 Gram product by strips over the rows that reach them), the aligned chart is whitened in
 centered point coordinates (``_center_cov``: the points' mean and their deviations, so that
 the unmeasured centroid does not cancel in the product). Up to 64 columns (case B's 29; 20
-points) the kernels do without: there the extra passes cost more than they save (measured: 13
-points even, 10 points 8 % slower, 20 points 5-10 % faster, 40 points 15-25 %).
+points) the kernels do without: there the extra passes cost more than they save.
 
 At every size ``A`` is factorized in reverse order (``_factor``), so that ``P+ = L A^-1 L^T =
 M M^T`` with ``M`` lower triangular (``_posterior_covariance_rev``): ``P+``'s own Cholesky
@@ -40,9 +39,9 @@ factorizing ``P+`` again (``core.kernels.consistency.nees_batch``). Given the tr
 engine's runs: ``mc.trial``), the kernels evaluate each posterior's NEES themselves as soon as ``P+`` and its
 square root are formed (``consistency._nees_one``, the per-trial body of ``nees_batch``, or for the full state
 ``consistency._nees_given``, its path with the square root given: the same numbers), while
-they are still in cache: read again by a separate pass over the batch they come from memory (~2 us of the NEES's
-~5.5 us per trial in case B's full state). The square root then stays in a scratch array and is not returned
-(nothing else reads it: written to a ``(B, n, n)`` output it was 1.8 MB of memory traffic per step at 250 trials).
+they are still in cache (a separate pass over the batch would read them again from memory). The square root then
+stays in a scratch array and is not returned (nothing else reads it: a ``(B, n, n)`` output is memory traffic for
+nothing).
 
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
@@ -55,25 +54,27 @@ import math
 import numpy as np
 from numba import njit
 
+from ..layout import CHART_ALIGNED, CHART_FULL, E_POINTS, QUAT, VEC
 from . import attitude as _att
 from ._refs import borrow, keep
-from .aligned import _chart, _measure_aligned, virtual_rows
+from .aligned import _chart, _e_n_points, _measure_aligned, virtual_rows
 from .cholesky import (_KIND_D, _NOTRANS, _TRANS, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf,
                        _xxgemm)  # fmt: skip
 from .consistency import _nees_given, _nees_one, _nees_scratch
-from .model import NNZ, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
+from .model import NNZ, Q_END, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
-STOPPING = {"mahalanobis": 0, "prior": 1, "scaled": 2, "raw": 3}
-CONTROL = {"none": 0, "line_search": 1, "levenberg_marquardt": 2}
+# the IEKF's step control and stopping rule (``kalman.iekf_update``'s options), as the kernels take them
+CONTROL_NONE, CONTROL_LINE_SEARCH, CONTROL_LM = 0, 1, 2  # plain Gauss-Newton; line search; Levenberg-Marquardt
+STOP_MAHALANOBIS, STOP_PRIOR, STOP_SCALED, STOP_RAW = 0, 1, 2, 3  # |dz|_A; |dz|; max |dx_i| / sigma_i; |dx|
+STOPPING = {"mahalanobis": STOP_MAHALANOBIS, "prior": STOP_PRIOR, "scaled": STOP_SCALED, "raw": STOP_RAW}
+CONTROL = {"none": CONTROL_NONE, "line_search": CONTROL_LINE_SEARCH, "levenberg_marquardt": CONTROL_LM}
 SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
 LARGE_N = 64  # past this size the update takes its large-n path (module docstring); measured crossover n ~ 60
 STAIR_BLOCK = 8  # the strips of rows of A in _whiten_staircase
 REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
-# its blocks up to 32 columns (case B: 29, 30): a full-state EKF update in 14.3-14.6 us per trial at 8 against
-# 14.6-15.0 at 16, 15.1 at 6, 16.2 at 4 and 16.1 at 32 (one block), measured alternated on the same arguments
-REV_BLOCK_SMALL = 8
+REV_BLOCK_SMALL = 8  # its blocks up to 32 columns (case B's sizes): the fastest measured there
 
 
 @njit(**_JIT)
@@ -109,11 +110,11 @@ def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd
     error state, ``xt = aligned.chart(x-, e)``, ``H_e`` of ``aligned._measure_aligned``; 2: the
     attitude error state, ``xt = errorstate.chart(x-, e)``, ``H_e`` of ``attitude._measure_attitude``.
     """
-    if chart == 0:
+    if chart == CHART_FULL:
         for i in range(xp.shape[0]):
             xt[i] = xp[i] + e[i]
         _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
-    elif chart == 1:
+    elif chart == CHART_ALIGNED:
         _measure_aligned(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt,
                          D, dD)  # fmt: skip
     else:
@@ -125,11 +126,11 @@ def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd
 def _reset(chart, xp, e, out):
     """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), ``aligned.chart`` or
     ``errorstate.chart``."""
-    if chart == 0:
+    if chart == CHART_FULL:
         for i in range(xp.shape[0]):
             out[i] = xp[i] + e[i]
         _normalize_q(out)
-    elif chart == 1:
+    elif chart == CHART_ALIGNED:
         _chart(xp, e, out, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
     else:
         _att._chart(xp, e, out)
@@ -139,7 +140,7 @@ def _reset(chart, xp, e, out):
 def _with_virtual(chart, Maug):
     """In the aligned chart, the rows of the virtual columns appended to ``M = Maug[:n]`` in place
     (``aligned.virtual_rows``: ``Maug[n + a] = sum_j M[12 + 3 j + a]``); nothing in the other charts."""
-    if chart == 1:
+    if chart == CHART_ALIGNED:
         n = Maug.shape[1]
         virtual_rows(Maug[:n], Maug)
 
@@ -165,15 +166,16 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     """
     xt = np.empty((0, x.shape[1])) if x_true is None else x_true
     xo, Po, nu, nis, _, _, ok, Ro, ev = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
-                                                          alpha, nd, ndd, cols, chart, 0.0, 1, 0, 1, 0, xt,
+                                                          alpha, nd, ndd, cols, chart, 0.0, 1, CONTROL_NONE, STOP_PRIOR, 0, xt,
                                                           attitude)  # fmt: skip
     return xo, Po, nu, nis, ok, Ro, ev
 
 
 @njit(**_JIT)
 def _normalize_q(x):
-    qn = math.sqrt(x[9] * x[9] + x[10] * x[10] + x[11] * x[11] + x[12] * x[12])
-    for i in range(9, 13):
+    qn = math.sqrt(x[QUAT] * x[QUAT] + x[QUAT + 1] * x[QUAT + 1] + x[QUAT + 2] * x[QUAT + 2]
+                   + x[QUAT + 3] * x[QUAT + 3])  # fmt: skip
+    for i in range(QUAT, Q_END):
         x[i] = x[i] / qn
 
 
@@ -183,11 +185,9 @@ def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
 
     Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
     past ``n``, those of virtual columns, ``_with_virtual``, are read in full), added to ``g`` times
-    ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after: ~0.2 us per trial less at case B's
-    size); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
+    ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after, which reads ``Hw`` again); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
     symmetric). Two consecutive rows that see the same columns (a feature's) are formed in one
-    pass, each entry of ``L`` read once for both: 3.62 -> 3.24 us per call at case B's size (the
-    same numbers: a row's group of four columns whose values are all zero, which a row alone
+    pass, each entry of ``L`` read once for both (the same numbers: a row's group of four columns whose values are all zero, which a row alone
     skips, adds exact zeros to it, ``L`` being finite).
     """
     m, n = Hw.shape
@@ -278,7 +278,7 @@ def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper):
     ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
     ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. With ``upper``, ``A`` is exactly
     symmetric (lower triangle mirrored); without, only its lower triangle is written (an EKF step reads no other:
-    ``_factor``; the mirror is ~1.5 % of the update at ``N = 40``).
+    ``_factor``; the mirror is a small part of the update).
 
     The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
     columns (every point, for the centroid) are therefore not split here but whitened in the
@@ -520,7 +520,7 @@ def _posterior_covariance_rev(L, LA, out, W):
         for j in range(j0, j1):
             lo = n - 1 - j
             _combine_rows(W, j, lo, n, W, LA, j, j0, j, -1.0)
-            r = 1.0 / LA[j, j]  # (a product by the reciprocal: n (n + 1) / 2 divisions were ~0.25 us per trial)
+            r = 1.0 / LA[j, j]  # (a product by the reciprocal: one division per row, not one per entry)
             for i in range(lo, n):
                 W[j, i] *= r
     # out[a0:a1, :a1] = sum over the rows r of W that reach column a1 - 1 (r >= n - a1) of W[r, a0:a1]^T W[r, :a1],
@@ -576,7 +576,7 @@ def _uncenter_cov(Pc, P, tmp, N):
 def _copy_other_rows(M, out, N):
     """``out[i] = M[i]`` for the rows that ``T`` leaves alone: the common block (12) and ``k``."""
     for i in range(M.shape[0]):
-        if i < 12 or i >= 12 + 3 * N:
+        if i < E_POINTS or i >= E_POINTS + VEC * N:
             for j in range(M.shape[1]):
                 out[i, j] = M[i, j]
 
@@ -590,7 +590,7 @@ def _center_rows(M, out, N):
     rows would lose ~``N`` ulps of the large common part in it. ``out``'s first deviation rows hold
     the compensations until the mean is final."""
     k = M.shape[1]
-    p0 = 12
+    p0 = E_POINTS
     _copy_other_rows(M, out, N)
     for a in range(3):
         for j in range(k):
@@ -618,7 +618,7 @@ def _center_rows(M, out, N):
 def _uncenter_rows(M, out, N):
     """``out = T^-1 M`` by rows: ``e_Pf = d_f + e_bar`` (``f < N - 1``), ``e_P(N-1) = e_bar - sum_f d_f``."""
     k = M.shape[1]
-    p0 = 12
+    p0 = E_POINTS
     last = p0 + 3 * (N - 1)
     _copy_other_rows(M, out, N)
     for a in range(3):
@@ -636,7 +636,7 @@ def _uncenter_rows(M, out, N):
 def _uncenter_vec_to(v, out, N):
     """``out = T^-1 v`` (``out`` may not be ``v``)."""
     n = v.shape[0]
-    p0 = 12
+    p0 = E_POINTS
     last = p0 + 3 * (N - 1)
     for i in range(p0):
         out[i] = v[i]
@@ -664,7 +664,7 @@ def _centered_virtual_rows(Laug, N):
     for f in range(N - 1):
         for a in range(3):
             for j in range(n):
-                Laug[n + a, j] += Laug[15 + 3 * f + a, j]
+                Laug[n + a, j] += Laug[E_POINTS + VEC + VEC * f + a, j]
 
 
 @njit(**_JIT)
@@ -676,7 +676,7 @@ def _centered_model_rows(Hval, cols, Hc, cc, n, N):
     every ``d``); a virtual column ``n + a`` of ``H_e`` (the sum of every point) gives ``N`` times its value to
     ``e_bar``. The other columns are unchanged."""
     m = Hval.shape[0]
-    p0 = 12
+    p0 = E_POINTS
     for r in range(m):
         eb0 = 0.0
         eb1 = 0.0
@@ -694,7 +694,7 @@ def _centered_model_rows(Hval, cols, Hc, cc, n, N):
                 a = c - n
                 h = h * N
             elif c >= p0 and c < p0 + 3 * N:
-                f = (c - p0) // 3
+                f = (c - p0) // VEC
                 a = (c - p0) - 3 * f
                 if f < N - 1:
                     Hc[r, k] = h
@@ -759,7 +759,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 9)``, the 8 NEES and
     ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False); and ``R+`` is not returned
     (``(0, n, n)``): the NEES were its only reader. (One array: each array a kernel
-    returns costs its boxing at every call, ~0.5 us, which a single trial's step pays in full.)
+    returns costs its boxing at every call, which a single trial's step pays in full.)
     """
     B, nx = x.shape
     n = P.shape[1]  # the filter's coordinates: the full state, or the error state
@@ -780,15 +780,15 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     hx = np.empty(m)
     Hval = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
-    Laug = np.empty((n + (3 if chart == 1 else 0), n))  # L, then the rows of the virtual columns (_with_virtual)
+    Laug = np.empty((n + (VEC if chart == CHART_ALIGNED else 0), n))  # L, then the rows of the virtual columns (_with_virtual)
     Hw = np.empty((m, n))
     ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
     big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n factorization)
     # whether A's upper triangle is read (the iterations' A z, the Mahalanobis stopping rule's, the copy a step control
     # keeps): not in an EKF step, whose large-n whitening then leaves it unwritten (_whiten_staircase)
-    upper = max_iter > 1 or control != 0 or (tol > 0.0 and stopping == 0)
-    cen = chart == 1 and n > LARGE_N  # whitened in the centered point coordinates (above)
-    Np = (n - 14) // 3
+    upper = max_iter > 1 or control != CONTROL_NONE or (tol > 0.0 and stopping == STOP_MAHALANOBIS)
+    cen = chart == CHART_ALIGNED and n > LARGE_N  # whitened in the centered point coordinates (above)
+    Np = _e_n_points(n)
     g2 = np.empty(n)  # _sqrt_mul's scratch
     Hc = np.zeros((m, NNZ) if cen else (0, NNZ))
     cc = np.zeros((m, NNZ) if cen else (0, NNZ), np.int64)
@@ -797,7 +797,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     A = np.empty((n, n))
     Afin = np.empty((n, n))
     LA = np.empty((n, n))
-    Ad = np.empty((n, n) if control == 2 else (0, 0))  # Levenberg-Marquardt's damped A + lam I
+    Ad = np.empty((n, n) if control == CONTROL_LM else (0, 0))  # Levenberg-Marquardt's damped A + lam I
     rws = np.empty(m)
     z = np.zeros(n)
     zn = np.empty(n)
@@ -812,8 +812,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     dD = np.empty((4, 3, 3))
     ev = np.full((B, 9), np.nan)  # the posteriors' NEES and pd (x_true given)
     outs = (xo, Po, nu, nis, its, conv, ok, Ro, ev)
-    # The loop works on borrowed arrays (``_refs.borrow``: no atomic reference counting in its views and calls, 1.4 us
-    # per trial of the full-state EKF on case B). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
+    # The loop works on borrowed arrays (``_refs.borrow``: no atomic reference counting in its views and calls). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
     own = (Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T,
            D, dD)  # fmt: skip
     x, P, y, R, mask, vis, alpha, cols, x_true = borrow((x, P, y, R, mask, vis, alpha, cols, x_true))
@@ -821,7 +820,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T, D, \
         dD = borrow(own)  # fmt: skip
     L = Laug[:n]
-    if judged:  # (only then: its views cost ~1 us to make and release, which a single trial's step would pay)
+    if judged:  # (only then: its views cost time to make and release, which a single trial's step would pay)
         nws = _nees_scratch(nx, n)  # (referenced through the loop: _nees_one reads it)
         wf = borrow((nws[0], nws[11], nws[31], nws[12], nws[16], nws[18], nws[19], nws[23], nws[24], nws[25], nws[26],
                      nws[27], nws[28]))  # _one_full's: Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3
@@ -877,7 +876,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
         cost = c0
         for i in range(n):
             z[i] = 0.0
-        if control != 0:  # (plain Gauss-Newton steps are always taken: LA stays the factor of the last A, fresh)
+        if control != CONTROL_NONE:  # (plain Gauss-Newton steps are always taken: LA stays the factor of the last A, fresh)
             _keep_linearization(A, Afin)
         failed = False
         fresh = True
@@ -886,14 +885,14 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             # z_GN = A^-1 Hw^T (rw + Hw z) = A^-1 (g + (A - I) z); from the prior (z = 0) that is d = A^-1 g of
             # the NIS above. Levenberg-Marquardt: ((1 + lam) I + Hw^T Hw) z = Hw^T (rw + Hw z_j) + lam z_j, i.e.
             # (A + lam I) z = g + (A - I) z_j + lam z_j, kept if the MAP cost does not increase (lam / 10), else x 10
-            if it == 0 and control != 2:
+            if it == 0 and control != CONTROL_LM:
                 for i in range(n):
                     zn[i] = d[i]
             else:
                 for i in range(n):
                     zn[i] = (g[i] - z[i]) + _dot_row(A, i, z, 0, n)
                 M = A
-                if control == 2:
+                if control == CONTROL_LM:
                     for i in range(n):
                         zn[i] += lam * z[i]
                         for j in range(i + 1):
@@ -908,14 +907,14 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             accepted = True
             c_new = cost
             have_jac = False  # hx, Hval already hold h and H at the accepted iterate
-            if control == 1:  # backtracking line search on the MAP cost
+            if control == CONTROL_LINE_SEARCH:  # backtracking line search on the MAP cost
                 for i in range(n):
                     d[i] = zn[i] - z[i]
                 # The full step's Mahalanobis size, known before its cost: if the full step is taken it will not
                 # stop the iterations, so its cost evaluation computes H too, which the next linearization needs
                 # (h and H at the same point: the same numbers as measuring again there).
                 jac_full = False
-                if stopping == 0 and it < max_iter - 1:
+                if stopping == STOP_MAHALANOBIS and it < max_iter - 1:
                     sf = 0.0
                     for i in range(n):
                         sf += d[i] * _dot_row(A, i, d, 0, n)
@@ -939,7 +938,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 if not accepted:
                     for i in range(n):
                         zn[i] = z[i]
-            elif control == 2:  # Levenberg-Marquardt: the damped step, kept if the MAP cost does not increase
+            elif control == CONTROL_LM:  # Levenberg-Marquardt: the damped step, kept if the MAP cost does not increase
                 fresh = False  # LA is the factor of A + lam I
                 ct = _cost_at(chart, zn, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
                               e, xt, hx, Hdummy, D, dD, False, cen, Np, g2)  # fmt: skip
@@ -956,13 +955,13 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             size = 0.0
             if tol <= 0.0:
                 pass
-            elif stopping == 0:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
+            elif stopping == STOP_MAHALANOBIS:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
                 for i in range(n):
                     dx[i] = zn[i] - z[i]
                 for i in range(n):
                     size += dx[i] * _dot_row(A, i, dx, 0, n)
                 size = math.sqrt(max(size, 0.0))
-            elif stopping == 1:
+            elif stopping == STOP_PRIOR:
                 for i in range(n):
                     size += (zn[i] - z[i]) ** 2
                 size = math.sqrt(size)
@@ -970,7 +969,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 for i in range(n):
                     zt[i] = zn[i] - z[i]
                 _sqrt_mul(L, zt, dx, cen, Np, g2)  # the step in the filter's coordinates
-                if stopping == 2:
+                if stopping == STOP_SCALED:
                     for i in range(n):
                         size = max(size, abs(dx[i]) / math.sqrt(P[b, i, i]))
                 else:
@@ -980,14 +979,14 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             small = accepted and size < tol
             if not accepted:
                 fresh = False  # Afin is an earlier iterate's: factorize it again below
-            elif control != 0:
+            elif control != CONTROL_NONE:
                 _keep_linearization(A, Afin)
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
             if small:
                 conv[b] = True
-            if small or (control == 1 and not accepted) or it == max_iter - 1:
+            if small or (control == CONTROL_LINE_SEARCH and not accepted) or it == max_iter - 1:
                 break
             if not have_jac:
                 _sqrt_mul(L, z, e, cen, Np, g2)
@@ -1013,7 +1012,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _posterior_covariance_rev(L, LA, Po[b], Rb)  # its W = (M J)^T is P+'s square root J M^T
         if judged:
             st = -1
-            if chart == 0:  # the full state: _one_full's scratch only (wf), not the 32-array tuple
+            if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 32-array tuple
                 st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], wf[0], wf[1], wf[2], wf[3], wf[4], wf[5], wf[6],
                                  wf[7], wf[8], wf[9], wf[10], wf[11], wf[12])  # fmt: skip
             if st < 0:
