@@ -17,8 +17,8 @@ the truth ``x_true`` (docs/filters.md, Consistency):
 
 ``M`` is held by rows of non-zeros (``1 + 3N`` at most); the rho and rho_dot rows, whose ``3N``
 point entries repeat 3 coefficients, take the point rows of ``P`` summed once instead; the
-block covariances are solved by the Cholesky of ``core.kernels.update``. A trial whose covariance is not positive definite
-(or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
+block covariances are solved by the Cholesky factorizations of ``core.kernels.cholesky``. A trial whose covariance
+is not positive definite (or whose state is not finite) gets NaN for every NEES and ``pd = False``: the engine's
 positive-definiteness check of ``P+`` (``mc.trial``) reads it instead of factorizing again.
 
 A full-state filter's covariance ``P`` is not mapped (``_one_full``): the NEES with ``T P T^T``

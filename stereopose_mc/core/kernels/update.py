@@ -54,14 +54,17 @@ import math
 import numpy as np
 from numba import njit
 
-from ..layout import CHART_ALIGNED, CHART_FULL, E_POINTS, QUAT, VEC
+from ..layout import CHART_ALIGNED, CHART_FULL, QUAT, VEC
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _e_n_points, _measure_aligned, virtual_rows
 from .cholesky import (_KIND_D, _NOTRANS, _TRANS, _UPLO_U, _cholesky, _cholesky_t, _cholesky_tu, _forward, _potrf,
                        _xxgemm)  # fmt: skip
 from .consistency import _nees_given, _nees_one, _nees_scratch
+from .centred import _center_cov, _centered_model_rows, _centered_virtual_rows, _sqrt_mul, _uncenter_cov
+from .centred import _uncenter_vec_to  # noqa: F401  (the update's helpers, reached through this module by the tests)
 from .model import NNZ, Q_END, _combine_rows, _dot, _dot_row, _measure_one, _mirror_lower, _ptr
+from .whiten import LARGE_N, _gram_lower, _whiten, _whiten_g, _whiten_staircase  # noqa: F401  (as above)
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -70,9 +73,6 @@ CONTROL_NONE, CONTROL_LINE_SEARCH, CONTROL_LM = 0, 1, 2  # plain Gauss-Newton; l
 STOP_MAHALANOBIS, STOP_PRIOR, STOP_SCALED, STOP_RAW = 0, 1, 2, 3  # |dz|_A; |dz|; max |dx_i| / sigma_i; |dx|
 STOPPING = {"mahalanobis": STOP_MAHALANOBIS, "prior": STOP_PRIOR, "scaled": STOP_SCALED, "raw": STOP_RAW}
 CONTROL = {"none": CONTROL_NONE, "line_search": CONTROL_LINE_SEARCH, "levenberg_marquardt": CONTROL_LM}
-SOLVE_BLOCK = 32  # past this size, triangular solves and Gram products run by blocks (BLAS on the blocks)
-LARGE_N = 64  # past this size the update takes its large-n path (module docstring); measured crossover n ~ 60
-STAIR_BLOCK = 8  # the strips of rows of A in _whiten_staircase
 REV_BLOCK = 16  # the blocks of _posterior_covariance_rev
 REV_BLOCK_SMALL = 8  # its blocks up to 32 columns (case B's sizes): the fastest measured there
 
@@ -99,6 +99,19 @@ def _masked(hx, Hval, y, mask):
             hx[r] = y[r]
             for k in range(NNZ):
                 Hval[r, k] = 0.0
+
+
+@njit(**_JIT)
+def _linearization(hx, Hval, cols, yb, mask, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, N):
+    """The whitened system of one iterate from its ``h`` and row-sparse ``H`` (``_measure_at``): the masked rows
+    taken out (``_masked``), then ``Hw``, ``rw``, ``g`` and ``A`` (``whiten._whiten_g``), or in the centred
+    coordinates (``cen``: ``centred._centered_model_rows`` into ``Hc``, ``cc``, then ``whiten._whiten_staircase``)."""
+    _masked(hx, Hval, yb, mask)
+    if cen:
+        _centered_model_rows(Hval, cols, Hc, cc, Hw.shape[1], N)
+        _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+    else:
+        _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
 
 
 @njit(**_JIT)
@@ -177,256 +190,6 @@ def _normalize_q(x):
                    + x[QUAT + 3] * x[QUAT + 3])  # fmt: skip
     for i in range(QUAT, Q_END):
         x[i] = x[i] / qn
-
-
-@njit(**_JIT)
-def _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g):
-    """``Hw = R^-1/2 H L``, ``rw = R^-1/2 (y - h)``, ``g = Hw^T rw``, ``A = I + Hw^T Hw`` (full, symmetric).
-
-    Row by row: ``Hw[r] = sum_k H[r, c_k] L[c_k, :c_k+1]`` (``L`` lower triangular; its rows
-    past ``n``, those of virtual columns, ``_with_virtual``, are read in full), added to ``g`` times
-    ``rw[r]`` while in cache (not by a BLAS ``gemv`` call after, which reads ``Hw`` again); then ``A = I + Hw^T Hw`` by BLAS (``np.dot``), its lower triangle mirrored (exactly
-    symmetric). Two consecutive rows that see the same columns (a feature's) are formed in one
-    pass, each entry of ``L`` read once for both (the same numbers: a row's group of four columns whose values are all zero, which a row alone
-    skips, adds exact zeros to it, ``L`` being finite).
-    """
-    m, n = Hw.shape
-    for j in range(n):
-        g[j] = 0.0
-    r = 0
-    while r < m:
-        # two rows at once where they see the same columns (a feature's rows): each row of L read once for both
-        two = r + 1 < m
-        if two:
-            for k in range(NNZ):
-                if cols[r, k] != cols[r + 1, k]:
-                    two = False
-                    break
-        for q in range(r, r + 2 if two else r + 1):
-            rw[q] = (yb[q] - hx[q]) * rws[q]
-            for j in range(n):
-                Hw[q, j] = 0.0
-        u = r + 1 if two else r
-        s, t = rws[r], rws[u]
-        for k in range(0, NNZ, 4):  # four columns of H per pass (L[c, j] = 0 past j = c)
-            h0, h1, h2, h3 = Hval[r, k] * s, Hval[r, k + 1] * s, Hval[r, k + 2] * s, Hval[r, k + 3] * s
-            e0, e1, e2, e3 = Hval[u, k] * t, Hval[u, k + 1] * t, Hval[u, k + 2] * t, Hval[u, k + 3] * t
-            hr = h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0
-            hu = two and (e0 != 0.0 or e1 != 0.0 or e2 != 0.0 or e3 != 0.0)
-            if hr or hu:
-                c0, c1, c2, c3 = cols[r, k], cols[r, k + 1], cols[r, k + 2], cols[r, k + 3]
-                top = min(max(max(c0, c1), max(c2, c3)) + 1, n)
-                if hu:
-                    for j in range(top):
-                        l0, l1, l2, l3 = L[c0, j], L[c1, j], L[c2, j], L[c3, j]
-                        Hw[r, j] += (h0 * l0 + h1 * l1) + (h2 * l2 + h3 * l3)
-                        Hw[u, j] += (e0 * l0 + e1 * l1) + (e2 * l2 + e3 * l3)
-                else:
-                    for j in range(top):
-                        Hw[r, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
-        for q in range(r, u + 1):
-            c = rw[q]
-            for j in range(n):
-                g[j] += c * Hw[q, j]
-        r = u + 1
-    _gram_lower(Hw, A)
-    for i in range(n):
-        A[i, i] += 1.0
-    _mirror_lower(A)
-
-
-@njit(**_JIT)
-def _whiten_g(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper):
-    """``_whiten`` and ``g = Hw^T rw``; past ``LARGE_N`` columns by ``_whiten_staircase`` (the same numbers to
-    round-off; ``ws (7 m + 16 n + 14)``, ``wi (2 m + n + 1)``: its float and integer scratch; ``upper``: as there)."""
-    if Hw.shape[1] <= LARGE_N:  # (the aligned chart's large n: _centered_model_rows, then _whiten_staircase)
-        _whiten(hx, Hval, cols, yb, rws, L, Hw, rw, A, g)
-    else:
-        _whiten_staircase(hx, Hval, cols, yb, rws, L, Hw, rw, A, g, ws, wi, upper)
-
-
-@njit(**_JIT)
-def _own(h, c, n, Bv, r):
-    """An entry ``h`` of a whitened row in column ``c``: ``(h, c)`` if ``c`` is a column of the state, else (a
-    virtual column) ``h`` is added to ``Bv[r, c - n]`` and ``(0, 0)`` returned; ``(0, 0)`` for a zero entry."""
-    if h == 0.0:
-        return 0.0, 0
-    if c >= n:
-        Bv[r, c - n] += h
-        return 0.0, 0
-    return h, c
-
-
-@njit(**_JIT)
-def _whiten_staircase(hx, Hval, cols, yb, rws, L, Hs, rw, A, g, ws, wi, upper):
-    """``_whiten`` and ``g = Hw^T rw`` for a large ``n``, skipping the exact zeros of ``Hw = R^-1/2 H L``.
-
-    A row of ``H`` whose last non-zero column is ``c`` gives a row of ``Hw`` that is zero past
-    ``c`` (``L`` is lower triangular), and a feature's row sees only the 12 common columns and
-    its own point's: its ``Hw`` row stops at its point (a staircase). In the aligned chart a row
-    may also have 3 virtual columns, whose rows ``V = L[n:n+3]`` are dense; they are split off:
-    ``Hw = Hs + Bv V`` with ``Hs`` the staircase part and ``Bv (m, 3)`` the virtual coefficients, and
-
-        ``Hw^T Hw = Hs^T Hs + W V + V^T W^T``, ``W = Hs^T Bv + V^T E / 2``, ``E = Bv^T Bv``;
-        ``g = Hs^T rw + V^T (Bv^T rw)``.
-
-    ``Hs`` is stored with its rows sorted by their length, shortest first (a stable counting
-    sort: the features stay in their order, the pseudo rows, whose ``k`` columns are last, stay
-    last, and so the sums run in the order of the dense product, small terms first), and
-    ``Hs^T Hs`` is formed by strips of ``STAIR_BLOCK`` rows of ``A``: strip ``[i0, i1)`` is
-    ``Hs[r0:, i0:i1]^T Hs[r0:, :i1]`` over the rows ``r0:`` that reach column ``i0`` (one BLAS
-    ``gemm`` on the sub-matrices in place), about half the full Gram product's flops at
-    ``N = 40``. ``(g, Hs^T Bv)`` is one ``gemm`` too, the rank-6 term another. With ``upper``, ``A`` is exactly
-    symmetric (lower triangle mirrored); without, only its lower triangle is written (an EKF step reads no other:
-    ``_factor``; the mirror is a small part of the update).
-
-    The split squares any cancellation between ``Hs`` and ``Bv V``: the aligned chart's virtual
-    columns (every point, for the centroid) are therefore not split here but whitened in the
-    centered coordinates (``_centered_model_rows``), where only the last point's rows keep a
-    virtual column, of small rows.
-    """
-    m, n = Hs.shape
-    nv = L.shape[0] - n  # virtual columns (3 in the aligned chart, else 0)
-    Bv = ws[: 3 * m].reshape((m, 3))
-    Z = ws[3 * m : 7 * m].reshape((m, 4))
-    o = 7 * m
-    GC = ws[o : o + 4 * n].reshape((n, 4))  # (g, Cv): g = Hs^T rw, Cv = Hs^T Bv
-    o += 4 * n
-    U1 = ws[o : o + 6 * n].reshape((n, 6))
-    U2 = ws[o + 6 * n : o + 12 * n].reshape((6, n))
-    o += 12 * n
-    E = ws[o : o + 9].reshape((3, 3))
-    bw = ws[o + 9 : o + 12]
-    ab = ws[o + 12 : o + 14]  # alpha = 1, beta (BLAS reads them through pointers)
-    ext = wi[:m]
-    pos = wi[m : 2 * m]
-    count = wi[2 * m : 2 * m + n + 1]
-    # --- each row's length (last own non-zero column + 1) and its place, shortest first (stable)
-    for e in range(n + 1):
-        count[e] = 0
-    for r in range(m):
-        last = -1
-        for k in range(NNZ):
-            c = cols[r, k]
-            if Hval[r, k] != 0.0 and c < n and c > last:
-                last = c
-        ext[r] = last + 1
-        count[last + 1] += 1
-    start = 0
-    for e in range(n + 1):  # count[e] <- first position of the rows of length e
-        c = count[e]
-        count[e] = start
-        start += c
-    for r in range(m):
-        pos[r] = count[ext[r]]
-        count[ext[r]] += 1
-    # count[e] is now the first position of the rows longer than e: rows count[e]: reach column e
-    # --- the rows: Hs[pos[r]] = sum of the own columns' rows of L (four per pass); Bv; rw; Z[pos[r]] = (rw, Bv)
-    for r in range(m):
-        s = rws[r]
-        rw[r] = (yb[r] - hx[r]) * s
-        p = pos[r]
-        for j in range(n):
-            Hs[p, j] = 0.0
-        Bv[r, 0] = 0.0
-        Bv[r, 1] = 0.0
-        Bv[r, 2] = 0.0
-        for k in range(0, NNZ, 4):
-            h0, c0 = _own(Hval[r, k] * s, cols[r, k], n, Bv, r)
-            h1, c1 = _own(Hval[r, k + 1] * s, cols[r, k + 1], n, Bv, r)
-            h2, c2 = _own(Hval[r, k + 2] * s, cols[r, k + 2], n, Bv, r)
-            h3, c3 = _own(Hval[r, k + 3] * s, cols[r, k + 3], n, Bv, r)
-            top = max(max(c0, c1), max(c2, c3)) + 1
-            if h0 != 0.0 or h1 != 0.0 or h2 != 0.0 or h3 != 0.0:
-                for j in range(top):
-                    Hs[p, j] += (h0 * L[c0, j] + h1 * L[c1, j]) + (h2 * L[c2, j] + h3 * L[c3, j])
-        Z[p, 0] = rw[r]
-        Z[p, 1] = Bv[r, 0]
-        Z[p, 2] = Bv[r, 1]
-        Z[p, 3] = Bv[r, 2]
-    # (g, Cv) = Hs^T Z over the rows of any length (one gemm; column-major GC^T = Z^T Hs)
-    ab[0] = 1.0
-    ab[1] = 0.0
-    r0 = count[0]
-    c = m - r0
-    if c > 0:
-        _xxgemm(_KIND_D, _NOTRANS, _TRANS, 4, n, c, ab[0:1].ctypes, Z[r0, :].ctypes, 4, Hs[r0, :].ctypes, n,
-                ab[1:2].ctypes, GC.ctypes, 4)  # fmt: skip
-    else:
-        GC[:, :] = 0.0
-    for a in range(3):
-        t = 0.0
-        for r in range(m):
-            t += Bv[r, a] * rw[r]
-        bw[a] = t
-    # --- the lower triangle of Hs^T Hs by strips of rows of A, each over the rows that reach it
-    nb = STAIR_BLOCK
-    for i0 in range(0, n, nb):
-        i1 = min(i0 + nb, n)
-        r0 = count[i0]  # the rows from r0 on reach column i0
-        c = m - r0
-        if c == 0:
-            for i in range(i0, i1):
-                for j in range(i1):
-                    A[i, j] = 0.0
-            continue
-        # column-major view: Hs^T (n x m, ld n); A[i0:i1, :i1] is (A^T)[:i1, i0:i1] (ld n)
-        _xxgemm(_KIND_D, _NOTRANS, _TRANS, i1, i1 - i0, c, ab[0:1].ctypes, Hs[r0, :].ctypes, n, Hs[r0, i0:].ctypes,
-                n, ab[1:2].ctypes, A[i0, :].ctypes, n)  # fmt: skip
-    # --- the virtual columns: + W V + V^T W^T and g += V^T (Bv^T rw)
-    if nv == 0:
-        for j in range(n):
-            g[j] = GC[j, 0]
-    else:
-        for a in range(3):
-            for b in range(3):
-                t = 0.0
-                for r in range(m):
-                    t += Bv[r, a] * Bv[r, b]
-                E[a, b] = t
-        for j in range(n):
-            for a in range(3):
-                t = GC[j, 1 + a] + 0.5 * (L[n, j] * E[0, a] + L[n + 1, j] * E[1, a] + L[n + 2, j] * E[2, a])
-                U1[j, a] = t
-                U2[3 + a, j] = t
-                U1[j, 3 + a] = L[n + a, j]
-                U2[a, j] = L[n + a, j]
-            g[j] = GC[j, 0] + (L[n, j] * bw[0] + L[n + 1, j] * bw[1] + L[n + 2, j] * bw[2])
-        ab[1] = 1.0
-        # A += U1 U2 (C order): column-major A^T += U2^T U1^T
-        _xxgemm(_KIND_D, _NOTRANS, _NOTRANS, n, n, 6, ab[0:1].ctypes, U2.ctypes, n, U1.ctypes, 6, ab[1:2].ctypes,
-                A.ctypes, n)  # fmt: skip
-    for i in range(n):
-        A[i, i] += 1.0
-    if upper:
-        _mirror_lower(A)
-
-
-@njit(**_JIT)
-def _gram_lower(M, G):
-    """The lower triangle of ``G = M^T M`` (``M (m, n)``) by BLAS: one product up to ``SOLVE_BLOCK`` columns,
-    else the blocks on and below the diagonal only (about half the flops of the full product)."""
-    m, n = M.shape
-    nb = SOLVE_BLOCK
-    if n <= nb:
-        np.dot(M.T, M, G)
-        return
-    MT = np.ascontiguousarray(M.T)
-    tmp = np.empty((nb, nb))
-    for i0 in range(0, n, nb):
-        i1 = min(i0 + nb, n)
-        for j0 in range(0, i0 + 1, nb):
-            j1 = min(j0 + nb, n)
-            t = tmp[: i1 - i0, : j1 - j0]
-            if i1 - i0 == nb and j1 - j0 == nb:
-                np.dot(MT[i0:i1], MT[j0:j1].T, tmp)
-            else:
-                t2 = np.empty((i1 - i0, j1 - j0))
-                np.dot(MT[i0:i1], MT[j0:j1].T, t2)
-                t = t2
-            for i in range(i0, i1):
-                for j in range(j0, min(j1, i + 1)):
-                    G[i, j] = t[i - i0, j - j0]
 
 
 @njit(**_JIT)
@@ -538,204 +301,6 @@ def _posterior_covariance_rev(L, LA, out, W):
                     _ptr(W, r0 * n + a0), n, _ptr(ab, 1), _ptr(out, a0 * n + c), n)  # fmt: skip
             r1 = r0
     _mirror_lower(out)
-
-
-# --- the centered point coordinates of the aligned chart (large n) ---------------------------------------------
-# The aligned chart's features see the points only through their deviations from the centroid, so the centroid's
-# error (the gauge) is never measured and keeps its prior variance while the deviations shrink. Whitened by the
-# Cholesky factor of P itself, a feature's row is the difference of two large rows (its point's and the mean's);
-# split into a staircase part and the point sums (_whiten_staircase), the Gram product squares that cancellation.
-# Past LARGE_N columns the aligned chart is therefore whitened in centered coordinates
-# ``e' = T e``: the common block, then ``e_bar`` (the points' mean error, 3), then ``d_f = e_Pf - e_bar`` for the
-# first N - 1 points, then k: ``P' = T P T^T = L' L'^T`` and ``L = T^-1 L'`` (a square root of ``P``, not
-# triangular). A feature's row then sees its own ``d_f`` (the last point: minus the sum of all ``d``, a virtual
-# column of small rows) and ``e_bar`` with the coefficient ``h_own + N h_virtual`` (~0): a staircase again.
-
-
-@njit(**_JIT)
-def _center_cov(P, Pc, tmp, N):
-    """``Pc = T P T^T = T (T P)^T`` (``P`` symmetric; the centered coordinates above; ``tmp`` an ``n x n``
-    scratch): two passes of ``_center_rows`` with a transposed copy between them. Symmetric to round-off: its lower
-    triangle is what the Cholesky factorization reads."""
-    _center_rows(P, Pc, N)
-    tmp[:, :] = Pc.T
-    _center_rows(tmp, Pc, N)
-
-
-@njit(**_JIT)
-def _uncenter_cov(Pc, P, tmp, N):
-    """``P = T^-1 Pc T^-T``: ``T^-1`` on the rows, then on each row as a vector (no sums to compensate: the
-    deviations are added to the mean); exactly symmetric."""
-    _uncenter_rows(Pc, tmp, N)
-    for i in range(Pc.shape[0]):
-        _uncenter_vec_to(tmp[i], P[i], N)
-    _mirror_lower(P)
-
-
-@njit(**_JIT)
-def _copy_other_rows(M, out, N):
-    """``out[i] = M[i]`` for the rows that ``T`` leaves alone: the common block (12) and ``k``."""
-    for i in range(M.shape[0]):
-        if i < E_POINTS or i >= E_POINTS + VEC * N:
-            for j in range(M.shape[1]):
-                out[i, j] = M[i, j]
-
-
-@njit(**_JIT)
-def _center_rows(M, out, N):
-    """``out = T M`` by rows: the points' mean row, then each of the first ``N - 1`` point rows minus it.
-
-    The mean is a compensated sum (Knuth's TwoSum on each term, branch-free): a point's deviation
-    from the mean is small against the points' common (unmeasured) error, and a plain sum of ``N``
-    rows would lose ~``N`` ulps of the large common part in it. ``out``'s first deviation rows hold
-    the compensations until the mean is final."""
-    k = M.shape[1]
-    p0 = E_POINTS
-    _copy_other_rows(M, out, N)
-    for a in range(3):
-        for j in range(k):
-            out[p0 + a, j] = 0.0
-            out[p0 + 3 + a, j] = 0.0
-    for f in range(N):
-        for a in range(3):
-            for j in range(k):
-                t = out[p0 + a, j]
-                v = M[p0 + 3 * f + a, j]
-                u = t + v
-                bp = u - t
-                out[p0 + 3 + a, j] += (t - (u - bp)) + (v - bp)
-                out[p0 + a, j] = u
-    for a in range(3):
-        for j in range(k):
-            out[p0 + a, j] = (out[p0 + a, j] + out[p0 + 3 + a, j]) / N
-    for f in range(N - 1):
-        for a in range(3):
-            for j in range(k):
-                out[p0 + 3 + 3 * f + a, j] = M[p0 + 3 * f + a, j] - out[p0 + a, j]
-
-
-@njit(**_JIT)
-def _uncenter_rows(M, out, N):
-    """``out = T^-1 M`` by rows: ``e_Pf = d_f + e_bar`` (``f < N - 1``), ``e_P(N-1) = e_bar - sum_f d_f``."""
-    k = M.shape[1]
-    p0 = E_POINTS
-    last = p0 + 3 * (N - 1)
-    _copy_other_rows(M, out, N)
-    for a in range(3):
-        for j in range(k):
-            out[last + a, j] = M[p0 + a, j]
-    for f in range(N - 1):
-        for a in range(3):
-            for j in range(k):
-                d = M[p0 + 3 + 3 * f + a, j]
-                out[p0 + 3 * f + a, j] = d + M[p0 + a, j]
-                out[last + a, j] -= d
-
-
-@njit(**_JIT)
-def _uncenter_vec_to(v, out, N):
-    """``out = T^-1 v`` (``out`` may not be ``v``)."""
-    n = v.shape[0]
-    p0 = E_POINTS
-    last = p0 + 3 * (N - 1)
-    for i in range(p0):
-        out[i] = v[i]
-    for i in range(p0 + 3 * N, n):
-        out[i] = v[i]
-    s0, s1, s2 = v[p0], v[p0 + 1], v[p0 + 2]
-    for f in range(N - 1):
-        d0, d1, d2 = v[p0 + 3 + 3 * f], v[p0 + 4 + 3 * f], v[p0 + 5 + 3 * f]
-        out[p0 + 3 * f] = d0 + v[p0]
-        out[p0 + 3 * f + 1] = d1 + v[p0 + 1]
-        out[p0 + 3 * f + 2] = d2 + v[p0 + 2]
-        s0 -= d0
-        s1 -= d1
-        s2 -= d2
-    out[last], out[last + 1], out[last + 2] = s0, s1, s2
-
-
-@njit(**_JIT)
-def _centered_virtual_rows(Laug, N):
-    """``Laug[n + a] = sum_{f < N-1} L'[15 + 3 f + a]``: the rows of the last point's virtual column."""
-    n = Laug.shape[1]
-    for a in range(3):
-        for j in range(n):
-            Laug[n + a, j] = 0.0
-    for f in range(N - 1):
-        for a in range(3):
-            for j in range(n):
-                Laug[n + a, j] += Laug[E_POINTS + VEC + VEC * f + a, j]
-
-
-@njit(**_JIT)
-def _centered_model_rows(Hval, cols, Hc, cc, n, N):
-    """The aligned chart's row-sparse ``H_e`` in the centered coordinates: ``H' = H_e T^-1`` (same layout).
-
-    A point column ``12 + 3 f + a`` gives its value to ``d_f`` (column ``15 + 3 f + a``) and to ``e_bar``
-    (``12 + a``), or for the last point to ``e_bar`` and, negated, to the virtual column ``n + a`` (the sum of
-    every ``d``); a virtual column ``n + a`` of ``H_e`` (the sum of every point) gives ``N`` times its value to
-    ``e_bar``. The other columns are unchanged."""
-    m = Hval.shape[0]
-    p0 = E_POINTS
-    for r in range(m):
-        eb0 = 0.0
-        eb1 = 0.0
-        eb2 = 0.0
-        k = 0
-        for q in range(NNZ):
-            Hc[r, q] = 0.0
-            cc[r, q] = 0
-        for q in range(NNZ):
-            h = Hval[r, q]
-            c = cols[r, q]
-            if h == 0.0:
-                continue
-            if c >= n:
-                a = c - n
-                h = h * N
-            elif c >= p0 and c < p0 + 3 * N:
-                f = (c - p0) // VEC
-                a = (c - p0) - 3 * f
-                if f < N - 1:
-                    Hc[r, k] = h
-                    cc[r, k] = p0 + 3 + 3 * f + a
-                else:
-                    Hc[r, k] = -h
-                    cc[r, k] = n + a
-                k += 1
-            else:
-                Hc[r, k] = h
-                cc[r, k] = c
-                k += 1
-                continue
-            if a == 0:
-                eb0 += h
-            elif a == 1:
-                eb1 += h
-            else:
-                eb2 += h
-        if eb0 != 0.0 or eb1 != 0.0 or eb2 != 0.0:
-            Hc[r, k], cc[r, k] = eb0, p0
-            Hc[r, k + 1], cc[r, k + 1] = eb1, p0 + 1
-            Hc[r, k + 2], cc[r, k + 2] = eb2, p0 + 2
-
-
-@njit(**_JIT)
-def _sqrt_mul(L, z, out, cen, N, tmp):
-    """``out = L z`` for the whitening's square root: ``L`` lower triangular, or (``cen``) ``T^-1 L' z`` (through
-    ``tmp``)."""
-    if cen:
-        _lower_mul(L, z, tmp)
-        _uncenter_vec_to(tmp, out, N)
-    else:
-        _lower_mul(L, z, out)
-
-
-@njit(**_JIT)
-def _lower_mul(L, z, out):
-    """``out = L z`` (``L`` lower triangular)."""
-    for i in range(L.shape[0]):
-        out[i] = _dot_row(L, i, z, 0, i + 1)
 
 
 @njit(**_JIT)
@@ -854,12 +419,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             e[i] = 0.0
         _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
                     D, dD)  # fmt: skip
-        _masked(hx, Hval, yb, mk)
-        if cen:
-            _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-            _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
-        else:
-            _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+        _linearization(hx, Hval, cols, yb, mk, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, Np)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
         # NIS by Woodbury: |rw|^2 - g^T A^-1 g, g = Hw^T rw
@@ -992,12 +552,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 _sqrt_mul(L, z, e, cen, Np, g2)
                 _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval,
                             xt, D, dD)  # fmt: skip
-            _masked(hx, Hval, yb, mk)
-            if cen:
-                _centered_model_rows(Hval, cols, Hc, cc, n, Np)
-                _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
-            else:
-                _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+            _linearization(hx, Hval, cols, yb, mk, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, Np)
         if failed or not (fresh or _factor(Afin, LA)):
             ok[b] = False
             continue
