@@ -20,13 +20,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from . import layout as lay
 from . import quaternion as qt
 from . import state as st
 from .orbit import MU_EARTH
 
 Array = NDArray[np.float64]
 
-_N_SHARED = 13  # columns rho, rho_dot, omega, q that every feature's rows touch
+_N_SHARED = lay.COMMON  # columns rho, rho_dot, omega, q that every feature's rows touch
 
 
 def _dA_dq_explicit(q: Array) -> Array:
@@ -261,14 +262,16 @@ def H_features_compact(
 
     K = np.zeros(batch + (N, 6, _N_SHARED + 3))
     eye = np.eye(3)
-    K[..., 0:3, 0:3] = eye
-    K[..., 3:6, 3:6] = eye
-    K[..., 3:6, 6:9] = -_skew(r)
+    rho, rho_dot, omega = (slice(o, o + 3) for o in (lay.RHO, lay.RHO_DOT, lay.OMEGA))
+    q, qp = slice(lay.QUAT, lay.QUAT + lay.QUAT_SIZE), slice(lay.QUAT, _N_SHARED + 3)  # q, and q with the point
+    K[..., 0:3, rho] = eye
+    K[..., 3:6, rho_dot] = eye
+    K[..., 3:6, omega] = -_skew(r)
     # dr_i/dq_j = dD_j P_i: (...,4,3,3)(...,3,N) -> (...,4,3,N) -> (...,N,3,4)
     dr_dq = np.swapaxes((dD.reshape(batch + (12, 3)) @ _T(P)).reshape(batch + (4, 3, N)), -3, -1)
-    K[..., 0:3, 9:13] = dr_dq
-    K[..., 0:3, 13:16] = D[..., None, :, :]
-    K[..., 3:6, 9:16] = _skew(w)[..., None, :, :] @ K[..., 0:3, 9:16]
+    K[..., 0:3, q] = dr_dq
+    K[..., 0:3, _N_SHARED : _N_SHARED + 3] = D[..., None, :, :]
+    K[..., 3:6, qp] = _skew(w)[..., None, :, :] @ K[..., 0:3, qp]
     out = Jpv @ K
     if focal != 1.0:
         out *= focal
