@@ -76,7 +76,7 @@ def test_core_imports_only_numpy_scipy_stdlib(path):
 
 
 PACKAGE = CORE.parent
-LAYERS = {"cli", "outputs", "studies", "mc", "filters", "sim", "config", "core", "data"}
+LAYERS = {"cli", "api", "outputs", "studies", "mc", "filters", "sim", "config", "core", "data"}
 
 
 def test_no_module_at_the_package_root():

@@ -56,13 +56,23 @@ def _split_values(text: str) -> list[str]:
     return [v.strip() for v in out]
 
 
+def is_key_path(path: str) -> bool:
+    """``a.b.c`` or ``a.b[1]``: mapping keys joined by dots, each with optional ``[i]`` list indices."""
+    return re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*(\[\d+\])*(\.[A-Za-z_][A-Za-z0-9_]*(\[\d+\])*)*", path) is not None
+
+
+def set_strings(sets: dict[str, list[Any]]) -> list[str]:
+    """``{PATH: [values]}`` -> the ``--set PATH=V1,V2,...`` strings (each value as JSON, which YAML reads back)."""
+    return [f"{k}=" + ",".join(json.dumps(x) for x in v) for k, v in sets.items()]
+
+
 def parse_set(text: str) -> Axis:
     """``PATH=V1,V2,...`` -> an :class:`Axis` (each value parsed as YAML)."""
     if "=" not in text:
         raise SweepError(f"--set {text!r}: expected PATH=V1,V2,...")
     path, vals = text.split("=", 1)
     path = path.strip()
-    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*(\[\d+\])*(\.[A-Za-z_][A-Za-z0-9_]*(\[\d+\])*)*", path):
+    if not is_key_path(path):
         raise SweepError(f"--set {text!r}: {path!r} is not a key path (a.b.c, a.b[1])")
     parts = _split_values(vals)
     if not parts or any(p == "" for p in parts):
@@ -84,8 +94,8 @@ def points_of(axes: list[Axis], zipped: bool) -> list[tuple[Any, ...]]:
     return list(itertools.product(*(a.values for a in axes)))
 
 
-def _set(d: dict, path: str, value: Any) -> None:
-    """Set ``value`` at ``path`` in the raw scenario mapping ``d`` (creating mappings; lists must exist)."""
+def set_path(d: dict, path: str, value: Any) -> None:
+    """Set ``value`` at ``path`` in the raw scenario mapping ``d`` (creating absent or null mappings; lists must exist)."""
     tokens: list[Any] = []
     for part in path.split("."):
         m = re.fullmatch(r"([^\[]+)((?:\[\d+\])*)", part)
@@ -101,7 +111,7 @@ def _set(d: dict, path: str, value: Any) -> None:
         else:
             if not isinstance(cur, dict):
                 raise SweepError(f"--set {path}: {tok!r} is not inside a mapping")
-            if tok not in cur:
+            if cur.get(tok) is None:  # absent, or null (an optional mapping left at its default)
                 if isinstance(nxt, int):
                     raise SweepError(f"--set {path}: the scenario has no list {tok!r}")
                 cur[tok] = {}
@@ -149,7 +159,7 @@ def build_points(scenario_file: Path, sets: list[str], zipped: bool, trials: int
     for i, vals in enumerate(points_of(axes, zipped)):
         d = json.loads(json.dumps(base))
         for a, v in zip(axes, vals):
-            _set(d, a.path, v)
+            set_path(d, a.path, v)
         if trials is not None:
             d["trials"] = trials
         where = f"{scenario_file} with " + ", ".join(f"{a.path}={json.dumps(v)}" for a, v in zip(axes, vals))
@@ -303,11 +313,10 @@ def load_sweep_file(path: Path) -> tuple[Path, list[str], bool, int | None]:
     sets = d.get("set")
     if not isinstance(sets, dict) or not sets:
         raise SweepError(f"{path}: sweep.set: required, a mapping of key paths to lists of values")
-    out = []
     for k, v in sets.items():
         if not isinstance(v, list) or not v:
             raise SweepError(f"{path}: sweep.set.{k}: must be a non-empty list of values")
-        out.append(f"{k}=" + ",".join(json.dumps(x) for x in v))
+    out = set_strings(sets)
     trials = d.get("trials")
     if trials is not None and (not isinstance(trials, int) or isinstance(trials, bool) or trials < 1):
         raise SweepError(f"{path}: sweep.trials: must be an integer >= 1")

@@ -1,0 +1,300 @@
+"""Monte Carlo runs in Python: :func:`run`, :func:`resume`, :class:`Run` (a run directory's tables as
+DataFrames), :func:`report` (what ``spmc report`` does for a list of paths)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import tempfile
+from collections.abc import Mapping
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ContextManager
+
+import pandas as pd
+
+from ..config.schema import Scenario
+from ..mc import engine
+from ..outputs import export as ex
+from ..outputs import tables
+from ._store import RunDirError, locked
+from .errors import SpmcError
+from .scenarios import as_scenario
+
+BACKENDS = ("auto", "loky", "threading", "dask")
+KERNELS = ("numpy", "compiled")
+
+Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
+FigureProgress = Callable[[str], None]  # called with each figure's key as it is drawn
+
+
+@dataclass(frozen=True)
+class Rerun:
+    """One trial recomputed from its seed: its trials rows, full time series, and whether it matches the run."""
+
+    trial: int
+    trials: pd.DataFrame
+    timeseries: pd.DataFrame
+    identical: bool
+    lines: list[str] = field(default_factory=list)
+
+
+class Run:
+    """A run directory (``spmc run``'s output) read as pandas DataFrames.
+
+    ``trials``, ``timeseries``, ``percentiles`` and ``timing`` are read once, on first use; each
+    DataFrame has the units of its columns in ``df.attrs["units"]`` (from the Parquet field
+    metadata). ``manifest`` is the run's ``manifest.json`` as a dict (nested: version, seed,
+    filters, backend, per-chunk timings); ``chunks`` its per-chunk timings as a DataFrame.
+    """
+
+    def __init__(self, path: str | Path, result: engine.RunResult | None = None):
+        self.path = Path(path)
+        self._result = result
+
+    @classmethod
+    def open(cls, path: str | Path) -> Run:
+        """An existing run directory; :class:`SpmcError` if ``path`` is not one."""
+        path = Path(path)
+        try:
+            m = json.loads((path / "manifest.json").read_text())
+        except (OSError, json.JSONDecodeError):
+            raise SpmcError(f"{path}: not a run directory (no readable manifest.json)") from None
+        if not isinstance(m, dict) or m.get("kind") != "run":
+            raise SpmcError(f"{path}: not a run directory made by 'spmc run'")
+        return cls(path)
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.path)!r})"
+
+    def _table(self, name: str) -> pd.DataFrame:
+        try:
+            return ex.read_table(self.path, name)
+        except ex.ExportError as exc:
+            raise SpmcError(str(exc)) from None
+
+    @functools.cached_property
+    def trials(self) -> pd.DataFrame:
+        """One row per trial x filter: window-mean and final errors, divergence, NEES/NIS means."""
+        return self._table("trials")
+
+    @functools.cached_property
+    def timeseries(self) -> pd.DataFrame:
+        """Per trial, filter and step: the errors, NEES, NIS, iterations (if the run kept a time series)."""
+        return self._table("timeseries")
+
+    @functools.cached_property
+    def percentiles(self) -> pd.DataFrame:
+        """Percentiles of the per-trial mean errors per filter and population (converged / all)."""
+        return self._table("percentiles")
+
+    @functools.cached_property
+    def timing(self) -> pd.DataFrame:
+        """Per-trial compute time."""
+        return self._table("timing")
+
+    @functools.cached_property
+    def manifest(self) -> dict[str, Any]:
+        """``manifest.json``: version, git revision, seed, trials, filters, host, start/end, chunks."""
+        return json.loads((self.path / "manifest.json").read_text())
+
+    @property
+    def chunks(self) -> pd.DataFrame:
+        """The manifest's per-chunk timings (first, last trial, wall_s, jobs, backend)."""
+        return pd.DataFrame(self.manifest.get("chunks") or [], columns=["first", "last", "wall_s", "jobs", "backend"])
+
+    @functools.cached_property
+    def scenario(self) -> Scenario:
+        """The resolved scenario the run was made with (``config.yaml``)."""
+        try:
+            return engine.load_run_scenario(self.path)
+        except (engine.RunError, ValueError) as exc:
+            raise SpmcError(str(exc)) from None
+
+    @property
+    def wall_s(self) -> float | None:
+        """Wall-clock seconds of the session that returned this object (``None`` for an opened run)."""
+        return None if self._result is None else self._result.wall_s
+
+    def summary(self) -> str:
+        """The percentile tables per filter, as ``spmc run`` prints them, with the trial counts."""
+        if self._result is not None:
+            pt, tr = self._result.percentile_columns, self._result.trials_columns
+        else:
+            pt, tr = tables.columns_of(self.percentiles), tables.columns_of(self.trials)
+        start = self.scenario.time.error_window_start_s
+        out = []
+        for label in dict.fromkeys(pt["filter"].tolist()):
+            first = list(pt["filter"]).index(label)
+            n, nd = int(pt["trials"][first]), int(pt["diverged"][first])
+            out.append(f"\n{label}: per-trial mean errors over t >= {start:g} s, {n - nd}/{n} trials converged "
+                       f"({nd} diverged)")  # fmt: skip
+            out.append(tables.format_table(pt, label, "converged"))
+            if nd:
+                out += ["all trials (diverged = inf):", tables.format_table(pt, label, "all")]
+        if "invalid" in tr and tr["invalid"].any():
+            bad = len(set(tr["trial"][tr["invalid"].astype(bool)].tolist()))
+            out.append(f"\n{bad} trial(s) drew an invalid scenario (counted as diverged at step 0; "
+                       "column 'invalid', reason 'invalid draw: ...' in trials.parquet)")  # fmt: skip
+        return "\n".join(out)
+
+    def rerun(self, trial: int, out: str | Path | None = None) -> Rerun:
+        """Recompute ``trial`` alone from its seed; ``identical`` says whether it matches ``trials``.
+
+        ``out``: also keep its time series there (a Parquet file).
+        """
+        from ..mc import rerun as rr
+
+        with tempfile.TemporaryDirectory(prefix="spmc-rerun-") as tmp:
+            target = Path(out) if out is not None else Path(tmp) / "timeseries.parquet"
+            try:
+                res = rr.rerun_trial(self.path, int(trial), target)
+            except rr.RerunError as exc:
+                raise SpmcError(str(exc)) from None
+            ts = ex.read_table(target.parent, target.stem)
+        lines = res.lines if out is not None else [ln for ln in res.lines if not ln.startswith("time series -> ")]
+        return Rerun(int(trial), res.trials, ts, res.identical, lines)
+
+    def report(self, progress: FigureProgress | None = None) -> Path:
+        """Write ``figures/`` and ``report.html`` from the run's tables; return the report's path."""
+        from ..outputs import report as rep
+
+        try:
+            with locked(self.path, "spmc report"):
+                return rep.build_run_report(self.path, progress)
+        except rep.ReportError as exc:
+            raise SpmcError(exc.lines()) from None
+        except RunDirError as exc:
+            raise SpmcError(str(exc)) from None
+
+    def export(self, format: str, tables: list[str] | None = None, out: str | Path | None = None,
+               overwrite: bool = False) -> list[Path]:  # fmt: skip
+        """Write tables as ``csv`` (+ units sidecars), ``mat`` (MATLAB structs) or ``parquet``; see :func:`export`."""
+        return export(self.path, format, tables, out, overwrite)
+
+
+def _options(jobs: int, chunk_size: int | None, backend: str, kernels: str | None, scheduler: str | None,
+             say: Callable[[str], None] | None, command: list[str] | None, **kw: Any) -> engine.RunOptions:  # fmt: skip
+    if scheduler is not None and backend not in ("auto", "dask"):
+        raise SpmcError(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
+    backend = "dask" if scheduler is not None else backend
+    if backend not in BACKENDS:
+        raise SpmcError(f"--backend must be auto, loky, threading or dask (got {backend!r})")
+    if kernels not in (None, *KERNELS):
+        raise SpmcError(f"--kernels must be numpy or compiled (got {kernels!r})")
+    return engine.RunOptions(jobs=jobs, chunk_size=chunk_size, backend=backend, kernels=kernels, scheduler=scheduler,
+                             say=say, command=list(sys.argv) if command is None else list(command), **kw)  # fmt: skip
+
+
+def _start(scn: Scenario, out: Path, opts: engine.RunOptions, progress: Progress | None, report: bool) -> Run:
+    try:
+        res = engine.run(scn, out, opts, progress)
+    except (engine.RunError, RunDirError) as exc:
+        raise SpmcError(str(exc)) from None
+    r = Run(out, res)
+    if report:
+        r.report()
+    return r
+
+
+def run(scenario: Scenario | str | Path | Mapping[str, Any], *, trials: int | None = None,
+        out: str | Path | None = None, seed: int | None = None, jobs: int = 1, chunk_size: int | None = None,
+        backend: str = "auto", kernels: str | None = None, scheduler: str | None = None, timeseries: str = "full",
+        overwrite: bool = False, report: bool = False, progress: Progress | None = None,
+        say: Callable[[str], None] | None = None, command: list[str] | None = None) -> Run:  # fmt: skip
+    """Run a Monte Carlo campaign (every filter of the scenario on every trial) into ``out``.
+
+    ``scenario``: a :class:`Scenario`, a YAML file or a scenario mapping. ``out`` defaults to
+    ``runs/<scenario name>``; an existing non-empty directory needs ``overwrite=True``. The
+    options are those of ``spmc run`` (``kernels="compiled"``: the Numba kernels; ``timeseries``:
+    ``none``, ``summary`` or ``full``); ``report=True`` also writes the figures and report.html.
+    ``progress(done, total, diverged_per_filter)`` is called as chunks finish; ``say`` gets notes.
+    Raises :class:`SpmcError` for bad input; results do not depend on ``jobs``, ``chunk_size`` or ``backend``.
+    """
+    scn = as_scenario(scenario)
+    out = Path(out) if out is not None else Path("runs") / scn.name
+    opts = _options(jobs, chunk_size, backend, kernels, scheduler, say, command, trials=trials, seed=seed,
+                    timeseries=timeseries, overwrite=overwrite)  # fmt: skip
+    return _start(scn, out, opts, progress, report)
+
+
+def resume(path: str | Path, *, trials: int | None = None, jobs: int = 1, chunk_size: int | None = None,
+           backend: str = "auto", kernels: str | None = None, scheduler: str | None = None,
+           timeseries: str | None = None, report: bool = False, progress: Progress | None = None,
+           say: Callable[[str], None] | None = None, command: list[str] | None = None) -> Run:  # fmt: skip
+    """Finish (or, with a larger ``trials``, extend) the run in ``path`` from its finished chunks.
+
+    The run keeps its scenario, seed, time-series mode and (unless ``kernels`` is given) its kernels.
+    """
+    path = Path(path)
+    try:
+        scn = engine.load_run_scenario(path)
+        timeseries = timeseries or engine.recorded_timeseries(path)
+    except (engine.RunError, ValueError) as exc:
+        raise SpmcError(str(exc)) from None
+    opts = _options(jobs, chunk_size, backend, kernels, scheduler, say, command, trials=trials,
+                    timeseries=timeseries, resume=True)  # fmt: skip
+    return _start(scn, path, opts, progress, report)
+
+
+def export(run_dir: str | Path, format: str, tables: list[str] | None = None, out: str | Path | None = None,
+           overwrite: bool = False) -> list[Path]:  # fmt: skip
+    """Export a run's tables (default: all it has; some of ``trials``, ``timeseries``, ``percentiles``,
+    ``timing``) as ``csv`` (a ``<table>.units.csv`` sidecar each), ``mat`` (one ``<run>.mat``, a struct per
+    table with ``units``) or ``parquet`` into ``out`` (default ``<run>/export``).
+
+    Each file is written atomically; an existing destination is refused unless ``overwrite``.
+    Returns the files written.
+    """
+    try:
+        return ex.export_run(Path(run_dir), format, tables, None if out is None else Path(out), overwrite)
+    except ex.ExportError as exc:
+        raise SpmcError(str(exc)) from None
+
+
+@dataclass
+class ReportOutcome:
+    """What :func:`report` wrote, and the problems of the paths it could not report on."""
+
+    written: list[Path] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+def report(paths: list[str | Path], progress_of: Callable[[Path], ContextManager] | None = None) -> ReportOutcome:
+    """Reports for run directories, folders of runs (each run's report and an ``index.html``) and sweeps.
+
+    ``progress_of(run_dir)``: a context manager giving a figure-progress callback (or None) per run.
+    A broken run is listed in ``problems`` and the others are still reported.
+    """
+    from ..outputs import report as rep
+    from ..outputs.sweep_report import build_sweep_report
+    from ..studies.sweep import SweepError
+
+    res = ReportOutcome()
+    for p in map(Path, paths):
+        if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
+            try:
+                res.written.append(build_sweep_report(p))
+            except (SweepError, rep.ReportError) as exc:
+                res.problems += exc.lines() if isinstance(exc, rep.ReportError) else [str(exc)]
+            continue
+        try:
+            runs, is_folder = rep.discover(p)
+        except rep.ReportError as exc:
+            res.problems += exc.lines()
+            continue
+        good: list[Path] = []
+        failed: dict[Path, list[str]] = {}
+        for r in runs:
+            try:
+                with (progress_of(r) if progress_of else nullcontext()) as prog:
+                    res.written.append(Run(r).report(prog))
+                good.append(r)
+            except SpmcError as exc:
+                res.problems += exc.lines
+                failed[r] = [line.removeprefix(f"{r}: ") for line in exc.lines]
+        if is_folder:
+            res.written.append(rep.build_index(p, good, failed))
+    return res

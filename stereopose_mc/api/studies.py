@@ -1,0 +1,164 @@
+"""Studies built on runs: :func:`sweep` (a campaign per point of a grid) and :func:`tune` (Q from NEES/NIS)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ContextManager
+
+import pandas as pd
+import yaml
+
+from ..config.loader import ScenarioError
+from ..config.schema import Scenario
+from ..mc import engine
+from ..studies import sweep as sw
+from ..studies import tuning
+from ._store import RunDirError
+from .errors import SpmcError
+from .runs import Run
+from .scenarios import as_scenario, edit
+
+Sets = Mapping[str, Sequence[Any]] | Sequence[str]
+
+
+@dataclass
+class Sweep:
+    """A sweep directory: ``sweep.json``, one run directory per point, the stacked percentiles."""
+
+    path: Path
+    ran: list[str] = field(default_factory=list)  # points run (or resumed) by the call that returned this
+    skipped: list[str] = field(default_factory=list)  # points already finished
+
+    @classmethod
+    def open(cls, path: str | Path) -> Sweep:
+        s = cls(Path(path))
+        s.spec  # noqa: B018  (raises for a directory that is not a sweep)
+        return s
+
+    @property
+    def spec(self) -> dict[str, Any]:
+        """``sweep.json``: the axes, the points (name and values), start and end."""
+        try:
+            return sw.load_sweep(self.path)
+        except sw.SweepError as exc:
+            raise SpmcError(str(exc)) from None
+
+    @property
+    def points(self) -> dict[str, Run]:
+        """Point name -> its :class:`Run`, in sweep order."""
+        return {p["name"]: Run(self.path / p["name"]) for p in self.spec["points"]}
+
+    def summary(self) -> pd.DataFrame:
+        """Per point and filter: the swept values, trials, divergence rate and quantiles of each error."""
+        return sw.summary(self.path)
+
+    @property
+    def percentiles(self) -> pd.DataFrame:
+        """The points' percentile tables stacked (filter = ``<point>/<filter>``)."""
+        return pd.read_csv(self.path / "percentiles.csv")
+
+    def report(self) -> Path:
+        """Write the sweep report (``report.html``, ``sweep.csv``, every point's report); return its path."""
+        from ..outputs.report import ReportError
+        from ..outputs.sweep_report import build_sweep_report
+
+        try:
+            return build_sweep_report(self.path)
+        except sw.SweepError as exc:
+            raise SpmcError(str(exc)) from None
+        except ReportError as exc:
+            raise SpmcError(exc.lines()) from None
+
+
+def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zip: bool = False,
+          trials: int | None = None, jobs: int = 1, chunk_size: int = 50, timeseries: str = "summary",
+          report: bool = False, on_point: Callable[[int, int, sw.Point, str], None] | None = None,
+          progress_of: Callable[[sw.Point], ContextManager] | None = None,
+          command: list[str] | None = None) -> Sweep:  # fmt: skip
+    """Run a campaign per point of a grid (``zip=True``: the lists side by side) into ``out``; resumable.
+
+    ``scenario``: a scenario YAML file, or a sweep file (``configs/sweeps/*.yaml``) whose ``set``,
+    ``zip`` and ``trials`` apply unless given here (a path in ``sets`` overrides the file's).
+    ``sets``: ``{"camera.baseline_m": [0.5, 1, 2]}`` or ``["camera.baseline_m=0.5,1,2"]``.
+    Every point uses the scenario's root seed (paired trials). ``on_point(i, n, point, what)``
+    is told of each point (``what``: run, resume or done); ``progress_of(point)`` gives a
+    context manager yielding the point's progress callback.
+    """
+    if isinstance(sets, Mapping):
+        sets = sw.set_strings({k: list(v) for k, v in sets.items()})
+    sets = list(sets or [])
+    scenario = Path(scenario)
+    if sw.is_sweep_file(scenario):
+        try:
+            scenario, file_sets, file_zip, file_trials = sw.load_sweep_file(scenario)
+        except sw.SweepError as exc:
+            raise SpmcError(str(exc)) from None
+        given = {s.split("=", 1)[0].strip() for s in sets}
+        sets = [s for s in file_sets if s.split("=", 1)[0] not in given] + sets
+        zip = zip or file_zip
+        trials = trials if trials is not None else file_trials
+    opts = engine.RunOptions(jobs=jobs, chunk_size=chunk_size, timeseries=timeseries,
+                             command=list(sys.argv) if command is None else list(command))  # fmt: skip
+    try:
+        res = sw.run_sweep(scenario, sets, Path(out), zip, trials, opts, on_point, progress_of)
+    except ScenarioError as exc:
+        raise SpmcError([str(p) for p in exc.problems]) from None
+    except (sw.SweepError, engine.RunError, RunDirError) as exc:
+        raise SpmcError(str(exc)) from None
+    s = Sweep(Path(out), res.ran, res.skipped)
+    if report:
+        s.report()
+    return s
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """A tuned filter: before/after statistics, the tuned entry and the scenario that uses it."""
+
+    filter: str
+    result: tuning.TuneResult
+    entry: dict[str, Any]  # the filter entry with the tuned process_noise (YAML-ready)
+    scenario: Scenario  # the input scenario with that filter's process_noise replaced
+
+    @property
+    def table(self) -> pd.DataFrame:
+        """Before / after: median NEES/dof per block, NIS/dof, median errors, lost trials, cost."""
+        return tuning.comparison_table(self.result)
+
+    @property
+    def yaml(self) -> str:
+        """``filters: [entry]`` as YAML, to paste into a scenario file."""
+        return yaml.safe_dump({"filters": [self.entry]}, sort_keys=False)
+
+
+def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, trials: int = 30,
+         max_evaluations: int = 40, out: str | Path | None = None,
+         progress: Callable[[int, tuning.Evaluation, str], None] | None = None) -> Tuning:  # fmt: skip
+    """Tune the Q block scales of the filter labelled ``filter`` so its NEES and NIS are consistent.
+
+    Every evaluation runs the same ``trials`` trials (at least 2), at most ``max_evaluations``
+    of them (docs/filters.md, Tuning). ``out``: also write the tuned entry there as YAML.
+    ``progress(i, evaluation, what)`` is called after each evaluation.
+    """
+    scn = as_scenario(scenario)
+    if trials < 2:
+        raise SpmcError("--trials must be at least 2")
+    if max_evaluations < 1:
+        raise SpmcError("--max-evaluations must be at least 1")
+    out = None if out is None else Path(out)
+    if out is not None and (out.is_dir() or not out.parent.exists()):
+        raise SpmcError(f"{out}: --out must be a file in an existing directory")
+    try:
+        res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress)
+    except tuning.TuneError as exc:
+        where = scn.name if isinstance(scenario, (Scenario, Mapping)) else str(scenario)
+        raise SpmcError(f"{where}: {exc}") from None
+    entry = tuning.tuned_entry(scn, filter, res)
+    index = next(i for i, f in enumerate(scn.filters) if f.label == filter)
+    t = Tuning(filter, res, entry, edit(scn, {f"filters[{index}].process_noise": entry["process_noise"]}))
+    if out is not None:
+        out.write_text(t.yaml)
+    return t
