@@ -11,13 +11,10 @@ from collections.abc import Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ContextManager
-
-import pandas as pd
+from typing import TYPE_CHECKING, Any, Callable, ContextManager
 
 from ..config.schema import Scenario
 from ..mc import engine
-from ..outputs import export as ex
 from ..outputs import tables
 from ._store import RunDirError, locked
 from .errors import SpmcError
@@ -28,6 +25,15 @@ KERNELS = ("numpy", "compiled")
 
 Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
 FigureProgress = Callable[[str], None]  # called with each figure's key as it is drawn
+
+if TYPE_CHECKING:  # pandas (~0.25 s) is imported when a table is read, never by a run
+    import pandas as pd
+
+
+def _export():
+    from ..outputs import export
+
+    return export
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,7 @@ class Run:
         return f"Run({str(self.path)!r})"
 
     def _table(self, name: str) -> pd.DataFrame:
+        ex = _export()
         try:
             return ex.read_table(self.path, name)
         except ex.ExportError as exc:
@@ -103,6 +110,8 @@ class Run:
     @property
     def chunks(self) -> pd.DataFrame:
         """The manifest's per-chunk timings (first, last trial, wall_s, jobs, backend)."""
+        import pandas as pd
+
         return pd.DataFrame(self.manifest.get("chunks") or [], columns=["first", "last", "wall_s", "jobs", "backend"])
 
     @functools.cached_property
@@ -112,6 +121,13 @@ class Run:
             return engine.load_run_scenario(self.path)
         except (engine.RunError, ValueError) as exc:
             raise SpmcError(str(exc)) from None
+
+    @property
+    def n_trials(self) -> int:
+        """The number of trials of the run."""
+        if self._result is not None:
+            return len(set(self._result.trials_columns["trial"].tolist()))
+        return int(self.manifest["trials"])
 
     @property
     def wall_s(self) -> float | None:
@@ -147,13 +163,14 @@ class Run:
         """
         from ..mc import rerun as rr
 
+        ex = _export()
         with tempfile.TemporaryDirectory(prefix="spmc-rerun-") as tmp:
             target = Path(out) if out is not None else Path(tmp) / "timeseries.parquet"
             try:
                 res = rr.rerun_trial(self.path, int(trial), target)
             except rr.RerunError as exc:
                 raise SpmcError(str(exc)) from None
-            ts = ex.read_table(target.parent, target.stem)
+            ts = ex.read_parquet(target, "timeseries")
         lines = res.lines if out is not None else [ln for ln in res.lines if not ln.startswith("time series -> ")]
         return Rerun(int(trial), res.trials, ts, res.identical, lines)
 
@@ -220,13 +237,14 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any], *, trials: int | No
     return _start(scn, out, opts, progress, report)
 
 
-def resume(path: str | Path, *, trials: int | None = None, jobs: int = 1, chunk_size: int | None = None,
+def resume(path: str | Path, *, trials: int | None = None, seed: int | None = None, jobs: int = 1, chunk_size: int | None = None,
            backend: str = "auto", kernels: str | None = None, scheduler: str | None = None,
            timeseries: str | None = None, report: bool = False, progress: Progress | None = None,
            say: Callable[[str], None] | None = None, command: list[str] | None = None) -> Run:  # fmt: skip
     """Finish (or, with a larger ``trials``, extend) the run in ``path`` from its finished chunks.
 
-    The run keeps its scenario, seed, time-series mode and (unless ``kernels`` is given) its kernels.
+    The run keeps its scenario, seed, time-series mode and (unless ``kernels`` is given) its kernels;
+    a ``seed`` or ``timeseries`` other than the run's is an error.
     """
     path = Path(path)
     try:
@@ -234,7 +252,7 @@ def resume(path: str | Path, *, trials: int | None = None, jobs: int = 1, chunk_
         timeseries = timeseries or engine.recorded_timeseries(path)
     except (engine.RunError, ValueError) as exc:
         raise SpmcError(str(exc)) from None
-    opts = _options(jobs, chunk_size, backend, kernels, scheduler, say, command, trials=trials,
+    opts = _options(jobs, chunk_size, backend, kernels, scheduler, say, command, trials=trials, seed=seed,
                     timeseries=timeseries, resume=True)  # fmt: skip
     return _start(scn, path, opts, progress, report)
 
@@ -248,6 +266,7 @@ def export(run_dir: str | Path, format: str, tables: list[str] | None = None, ou
     Each file is written atomically; an existing destination is refused unless ``overwrite``.
     Returns the files written.
     """
+    ex = _export()
     try:
         return ex.export_run(Path(run_dir), format, tables, None if out is None else Path(out), overwrite)
     except ex.ExportError as exc:

@@ -17,8 +17,14 @@ import yaml
 
 from ..config.loader import ScenarioError, load_scenario, load_scenario_text
 from ..config.schema import Scenario
-from ..studies import sweep as sw
 from .errors import SpmcError
+
+
+def _sweep():
+    """``studies.sweep`` (its key-path parser and setter), imported when used: it imports pandas."""
+    from ..studies import sweep
+
+    return sweep
 
 
 def load(path: str | Path) -> Scenario:
@@ -59,6 +65,7 @@ def from_dict(data: Mapping[str, Any], where: str = "<dict>") -> Scenario:
 
 def _changes(changes: Mapping[str, Any] | Sequence[str]) -> list[tuple[str, Any]]:
     """``{PATH: value}`` or ``["PATH=VALUE", ...]`` (values read as YAML, as ``--set`` reads them)."""
+    sw = _sweep()
     if isinstance(changes, Mapping):
         items = [(str(k), _plain(v)) for k, v in changes.items()]
     else:
@@ -84,6 +91,7 @@ def edit(scenario: Scenario, changes: Mapping[str, Any] | Sequence[str]) -> Scen
     ``--set`` form ``["camera.baseline_m=0.5"]`` (one value each). Mappings along a path that
     are absent are created; list items must exist.
     """
+    sw = _sweep()
     items = _changes(changes)
     d = scenario.model_dump(mode="json")
     for path, value in items:

@@ -6,20 +6,23 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ContextManager
+from typing import TYPE_CHECKING, Any, Callable, ContextManager
 
-import pandas as pd
 import yaml
 
 from ..config.loader import ScenarioError
 from ..config.schema import Scenario
 from ..mc import engine
-from ..studies import sweep as sw
-from ..studies import tuning
 from ._store import RunDirError
 from .errors import SpmcError
 from .runs import Run
-from .scenarios import as_scenario, edit
+from .scenarios import _sweep, as_scenario, edit
+
+if TYPE_CHECKING:  # imported where used: studies.sweep and studies.tuning import pandas (~0.25 s)
+    import pandas as pd
+
+    from ..studies import tuning
+    from ..studies.sweep import Point
 
 Sets = Mapping[str, Sequence[Any]] | Sequence[str]
 
@@ -41,6 +44,7 @@ class Sweep:
     @property
     def spec(self) -> dict[str, Any]:
         """``sweep.json``: the axes, the points (name and values), start and end."""
+        sw = _sweep()
         try:
             return sw.load_sweep(self.path)
         except sw.SweepError as exc:
@@ -53,11 +57,13 @@ class Sweep:
 
     def summary(self) -> pd.DataFrame:
         """Per point and filter: the swept values, trials, divergence rate and quantiles of each error."""
-        return sw.summary(self.path)
+        return _sweep().summary(self.path)
 
     @property
     def percentiles(self) -> pd.DataFrame:
         """The points' percentile tables stacked (filter = ``<point>/<filter>``)."""
+        import pandas as pd
+
         return pd.read_csv(self.path / "percentiles.csv")
 
     def report(self) -> Path:
@@ -65,6 +71,7 @@ class Sweep:
         from ..outputs.report import ReportError
         from ..outputs.sweep_report import build_sweep_report
 
+        sw = _sweep()
         try:
             return build_sweep_report(self.path)
         except sw.SweepError as exc:
@@ -75,8 +82,8 @@ class Sweep:
 
 def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zip: bool = False,
           trials: int | None = None, jobs: int = 1, chunk_size: int = 50, timeseries: str = "summary",
-          report: bool = False, on_point: Callable[[int, int, sw.Point, str], None] | None = None,
-          progress_of: Callable[[sw.Point], ContextManager] | None = None,
+          report: bool = False, on_point: Callable[[int, int, Point, str], None] | None = None,
+          progress_of: Callable[[Point], ContextManager] | None = None,
           command: list[str] | None = None) -> Sweep:  # fmt: skip
     """Run a campaign per point of a grid (``zip=True``: the lists side by side) into ``out``; resumable.
 
@@ -87,6 +94,7 @@ def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zi
     is told of each point (``what``: run, resume or done); ``progress_of(point)`` gives a
     context manager yielding the point's progress callback.
     """
+    sw = _sweep()
     if isinstance(sets, Mapping):
         sets = sw.set_strings({k: list(v) for k, v in sets.items()})
     sets = list(sets or [])
@@ -126,6 +134,8 @@ class Tuning:
     @property
     def table(self) -> pd.DataFrame:
         """Before / after: median NEES/dof per block, NIS/dof, median errors, lost trials, cost."""
+        from ..studies import tuning
+
         return tuning.comparison_table(self.result)
 
     @property
@@ -143,6 +153,8 @@ def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, tr
     of them (docs/filters.md, Tuning). ``out``: also write the tuned entry there as YAML.
     ``progress(i, evaluation, what)`` is called after each evaluation.
     """
+    from ..studies import tuning
+
     scn = as_scenario(scenario)
     if trials < 2:
         raise SpmcError("--trials must be at least 2")

@@ -14,7 +14,7 @@ from typing import NoReturn
 import typer
 
 from . import dynamics_cmd, inertia_cmd, observability_cmd, report_cmds, run_cmds, scenario_cmds  # noqa: F401
-from . import sweep_cmd, tune_cmd  # noqa: F401  (each module registers its commands)
+from . import export_cmd, sweep_cmd, tune_cmd  # noqa: F401  (each module registers its commands)
 from .app import app
 
 

@@ -20,47 +20,14 @@ def report(
     paths written; a broken or partial run directory is an error (exit 2) listing what
     is missing.
     """
-    from ..outputs import report as rep
-    from ..outputs.rundir import RunDirError
-    from ..outputs.runlock import locked
+    from .. import api
     from .progress import figure_progress
 
-    written: list[Path] = []
-    problems: list[str] = []
-    for p in paths:
-        if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
-            from ..outputs.sweep_report import build_sweep_report
-            from ..studies.sweep import SweepError
-
-            try:
-                written.append(build_sweep_report(p))
-            except (SweepError, rep.ReportError) as exc:
-                problems += exc.lines() if isinstance(exc, rep.ReportError) else [str(exc)]
-            continue
-        try:
-            runs, is_folder = rep.discover(p)
-        except rep.ReportError as exc:
-            problems += exc.lines()
-            continue
-        good: list[Path] = []
-        failed: dict[Path, list[str]] = {}
-        for r in runs:
-            try:
-                with locked(r, "spmc report"), figure_progress(r.name, quiet) as fprog:
-                    written.append(rep.build_run_report(r, fprog))
-                good.append(r)
-            except rep.ReportError as exc:
-                problems += exc.lines()
-                failed[r] = exc.problems
-            except RunDirError as exc:
-                problems.append(str(exc))
-                failed[r] = [str(exc)]
-        if is_folder:
-            written.append(rep.build_index(p, good, failed))
-    for w in written:
+    res = api.report(paths, lambda r: figure_progress(r.name, quiet))
+    for w in res.written:
         typer.echo(str(w))
-    if problems:
-        fail(problems)
+    if res.problems:
+        fail(res.problems)
 
 
 @app.command()

@@ -29,10 +29,7 @@ def sweep(
     Writes DIR/sweep.json, one run directory per point, DIR/percentiles.csv (all points;
     `spmc compare` takes two sweeps) and the sweep report (DIR/report.html, sweep.csv).
     """
-    from ..config import ScenarioError  # here, not at import: `spmc --help` stays fast
-    from ..mc import engine
-    from ..outputs.rundir import RunDirError
-    from ..studies import sweep as sw
+    from .. import api
     from .progress import progress_reporter
 
     def on_point(i, n, p, what):
@@ -41,30 +38,16 @@ def sweep(
             typer.echo(f"[{i + 1}/{n}] {p.name} ({vals}): " + {"done": "finished, skipped", "run": "running",
                                                                 "resume": "resuming"}[what])  # fmt: skip
 
-    sets = list(sets or [])
-    if sw.is_sweep_file(scenario):
-        try:
-            scenario, file_sets, file_zip, file_trials = sw.load_sweep_file(scenario)
-        except sw.SweepError as exc:
-            fail(str(exc))
-        given = {s.split("=", 1)[0].strip() for s in sets}
-        sets = [s for s in file_sets if s.split("=", 1)[0] not in given] + sets  # --set overrides the file's
-        zipped = zipped or file_zip
-        trials = trials if trials is not None else file_trials
-    opts = engine.RunOptions(jobs=jobs, chunk_size=chunk_size, timeseries=timeseries, command=list(sys.argv))
     try:
-        res = sw.run_sweep(scenario, sets, out, zipped, trials, opts, on_point,
-                           lambda p: progress_reporter(p.name, quiet))
-    except ScenarioError as exc:
-        fail([str(p) for p in exc.problems])
-    except (sw.SweepError, engine.RunError, RunDirError) as exc:
-        fail(str(exc))
+        res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size,
+                        timeseries=timeseries, on_point=on_point, progress_of=lambda p: progress_reporter(p.name, quiet),
+                        command=list(sys.argv))  # fmt: skip
+        if report:
+            typer.echo(str(res.report()))
+    except api.SpmcError as exc:
+        fail(exc.lines)
     except KeyboardInterrupt:
         typer.echo("\ninterrupted: finished points and chunks are kept; rerun the same command to resume", err=True)
         raise typer.Exit(130) from None
-    if report:
-        from ..outputs.sweep_report import build_sweep_report
-
-        typer.echo(str(build_sweep_report(out)))
     if not quiet:
-        typer.echo(f"{len(res.points)} points ({len(res.ran)} run, {len(res.skipped)} already done) -> {out}")
+        typer.echo(f"{len(res.ran) + len(res.skipped)} points ({len(res.ran)} run, {len(res.skipped)} already done) -> {out}")

@@ -6,9 +6,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-import yaml
 
-from .app import app, fail, load_or_exit
+from .app import app, fail
 
 
 @app.command()
@@ -21,15 +20,7 @@ def tune(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
 ) -> None:
     """Tune the Q block scales of one filter so its NEES and NIS are consistent (docs/filters.md, Tuning)."""
-    from ..studies import tuning
-
-    scn = load_or_exit(scenario)
-    if trials < 2:
-        fail("--trials must be at least 2")
-    if max_evaluations < 1:
-        fail("--max-evaluations must be at least 1")
-    if out is not None and (out.is_dir() or not out.parent.exists()):
-        fail(f"{out}: --out must be a file in an existing directory")
+    from .. import api
 
     def progress(i: int, ev, what: str) -> None:
         if not quiet:
@@ -37,12 +28,11 @@ def tune(
                        f"{ev.nees.get('nees_gauge', float('nan')):.3g}, NIS/dof {ev.nis:.3g}, lost {ev.lost}", err=True)  # fmt: skip
 
     try:
-        res = tuning.tune(scn, filter_label, trials, max_evaluations, progress=progress)
-    except tuning.TuneError as exc:
-        fail(f"{scenario}: {exc}")
-    typer.echo(tuning.comparison_table(res).to_string(float_format=lambda v: f"{v:.3g}"))
-    text = yaml.safe_dump({"filters": [tuning.tuned_entry(scn, filter_label, res)]}, sort_keys=False)
-    typer.echo("\n# tuned filter entry (paste into the scenario's filters):\n" + text)
+        res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,
+                       progress=progress)  # fmt: skip
+    except api.SpmcError as exc:
+        fail(exc.lines)
+    typer.echo(res.table.to_string(float_format=lambda v: f"{v:.3g}"))
+    typer.echo("\n# tuned filter entry (paste into the scenario's filters):\n" + res.yaml)
     if out is not None:
-        out.write_text(text)
         typer.echo(f"wrote {out}")

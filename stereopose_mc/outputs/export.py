@@ -44,9 +44,14 @@ def read_table(run_dir: Path, name: str) -> pd.DataFrame:
     if not path.is_file():
         raise ExportError(f"{run_dir}: no {path.name}" + (" (the run was made with timeseries 'none')"
                                                           if name == "timeseries" else ""))  # fmt: skip
+    return read_parquet(path, name)
+
+
+def read_parquet(path: Path, table: str) -> pd.DataFrame:
+    """A Parquet file of a run as a DataFrame with ``attrs`` ``units``, ``table`` and ``path``."""
     df = pd.read_parquet(path)
     units = field_units(path)
-    df.attrs.update(units={c: units.get(c) or "" for c in df.columns}, table=name, path=str(path))
+    df.attrs.update(units={c: units.get(c) or "" for c in df.columns}, table=table, path=str(path))
     return df
 
 
