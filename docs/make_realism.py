@@ -26,7 +26,7 @@ import yaml
 
 from stereopose_mc.config import load_scenario
 from stereopose_mc.mc import engine
-from stereopose_mc.outputs import tables
+from stereopose_mc.rundir.percentiles import percentile_table
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "mission-realistic.yaml"
@@ -114,7 +114,7 @@ def run_all(trials: int, jobs: int) -> float:
 def summary(name: str) -> dict:
     """Medians and 90th percentiles (converged trials), lost trials, gating counts of one run."""
     t = pd.read_parquet(RUNS / name / "trials.parquet")
-    pt = tables.percentile_table(t, [50, 90])
+    pt = percentile_table(t, [50, 90])
     conv = pt[pt["population"] == "converged"].set_index("percentile")
     row = {"variant": name, "trials": len(t), "lost": int(t["diverged"].sum())}
     for c in SHOWN:

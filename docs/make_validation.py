@@ -40,8 +40,8 @@ import yaml
 
 from stereopose_mc.outputs.report import RunData, load_run
 from stereopose_mc.data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_percentiles
-from stereopose_mc.mc.trial import ERROR_NAMES
-from stereopose_mc.outputs import tables
+from stereopose_mc.rundir.percentiles import percentile_table
+from stereopose_mc.rundir.tables import ERROR_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = tuple("ABCDEF")
@@ -279,7 +279,7 @@ def filter_stats(trials: pd.DataFrame, ts: pd.DataFrame | None, timing: pd.DataF
         for det, sub in d.groupby("_d", sort=True):
             step = float(np.median(sub["diverged_step"])) if "diverged_step" in sub else float("nan")
             details[str(det)] = (len(sub), step)
-    pt = tables.percentile_table(g, [50.0, 90.0])
+    pt = percentile_table(g, [50.0, 90.0])
     conv = pt[pt["population"] == "converged"].set_index("percentile")
     med = {n: float(conv.at[50.0, n]) if 50.0 in conv.index else float("nan") for n in ERROR_NAMES}
     p90 = {n: float(conv.at[90.0, n]) if 90.0 in conv.index else float("nan") for n in ERROR_NAMES}
@@ -321,7 +321,7 @@ def case_stats(case: str, trials: pd.DataFrame, ts: pd.DataFrame | None, timing:
     labels = list(dict.fromkeys(str(f) for f in trials["filter"]))
     kinds = filter_kinds(config, labels)
     fstats = {lab: filter_stats(trials, ts, timing, lab, kinds[lab]) for lab in labels}
-    pt = tables.percentile_table(trials, list(PCTS))
+    pt = percentile_table(trials, list(PCTS))
     sigma_k0 = math.sqrt(float((config.get("initial_covariance") or {}).get("k", float("nan"))))
     initial = {n: float("nan") for n in ERROR_NAMES}
     median_at: dict[float, dict[str, float]] = {}

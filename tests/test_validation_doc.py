@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from stereopose_mc.data import thesis_percentiles
-from stereopose_mc.mc.trial import ERROR_NAMES
+from stereopose_mc.rundir.tables import ERROR_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "validation.md"

@@ -15,8 +15,9 @@ from typing import TYPE_CHECKING, Any, Callable, ContextManager
 
 from ..config.schema import Scenario
 from ..mc import engine
-from ..outputs import tables
-from ._store import RunDirError, locked
+from ..rundir import percentiles, tables
+from ..rundir.runlock import locked
+from ..rundir.store import RunDirError
 from .errors import SpmcError
 from .scenarios import as_scenario
 
@@ -147,9 +148,9 @@ class Run:
             n, nd = int(pt["trials"][first]), int(pt["diverged"][first])
             out.append(f"\n{label}: per-trial mean errors over t >= {start:g} s, {n - nd}/{n} trials converged "
                        f"({nd} diverged)")  # fmt: skip
-            out.append(tables.format_table(pt, label, "converged"))
+            out.append(percentiles.format_table(pt, label, "converged"))
             if nd:
-                out += ["all trials (diverged = inf):", tables.format_table(pt, label, "all")]
+                out += ["all trials (diverged = inf):", percentiles.format_table(pt, label, "all")]
         if "invalid" in tr and tr["invalid"].any():
             bad = len(set(tr["trial"][tr["invalid"].astype(bool)].tolist()))
             out.append(f"\n{bad} trial(s) drew an invalid scenario (counted as diverged at step 0; "

@@ -13,7 +13,7 @@ import yaml
 from ..config.loader import ScenarioError
 from ..config.schema import Scenario
 from ..mc import engine
-from ._store import RunDirError
+from ..rundir.store import RunDirError
 from .errors import SpmcError
 from .runs import Run
 from .scenarios import _sweep, as_scenario, edit

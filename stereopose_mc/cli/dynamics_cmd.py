@@ -35,7 +35,7 @@ def dynamics(
     dock_time: float = typer.Option(80.0, "--dock-time", help="CW docking (intercept) time, s"),
 ) -> None:
     """Nonlinear vs CW, simplified vs coupled feature model, and cost vs N (thesis figs 2.3-2.10)."""
-    from ..outputs.rundir import RunDirError
+    from ..rundir.store import RunDirError
     from ..studies.dynamics_study import StudyOptions, run_dynamics, summary_lines
 
     problems = []

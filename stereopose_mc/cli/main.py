@@ -43,7 +43,7 @@ def exit_now(code: int | str | None) -> NoReturn:
 
     What an exit must still do is done first: the ``atexit`` handlers run (logging, temporary files,
     worker pools), and stdout and stderr are flushed. Every file the commands write is closed by then
-    (``outputs/rundir.py`` writes through temporary files and renames). While a non-daemon thread is
+    (``rundir/store.py`` writes through temporary files and renames). While a non-daemon thread is
     still running, the ordinary exit is taken (it waits for the thread).
     """
     if code is None:

@@ -48,7 +48,7 @@ def simulate(
     trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
-    from ..outputs.rundir import RunDirError
+    from ..rundir.store import RunDirError
     from ..outputs.simulation import simulate as run_simulate
 
     scn = load_or_exit(scenario)

@@ -40,7 +40,7 @@ from ..sim.faults import Faults, apply_faults
 from .trial import Bounds, ChunkResult, FilterRun, run_filter
 
 if TYPE_CHECKING:
-    from ..outputs.tables import Columns
+    from ..rundir.tables import Columns
 
 INVALID_PREFIX = "invalid draw: "
 

@@ -43,11 +43,12 @@ from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.dispersions import units as dispersion_units
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
-from ..outputs import integrity, rundir, runlock, tables
+from ..rundir import integrity, runlock, store, tables
+from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
-from . import dispersed
+from . import dispersed, rows
 from .trial import Bounds, run_chunk
 
 if TYPE_CHECKING:  # pandas is not imported by a run (~0.25 s): only by RunResult.trials / .percentiles
@@ -132,17 +133,17 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
             res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels)
         else:
             res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels), None
-    tc = tables.trials_columns(res, truth.t, setup.window_start, scn.seed)
+    tc = rows.trials_columns(res, truth.t, setup.window_start, scn.seed)
     if disp is not None:
         tc = dispersed.with_columns(tc, disp)
     ts = None
     if timeseries != "none":
         keep = None if timeseries == "full" else (np.asarray(trials) < SUMMARY_TRIALS)
-        ts = tables.timeseries_columns(res, truth.t, keep)
+        ts = rows.timeseries_columns(res, truth.t, keep)
         if ts is not None:  # filter-major blocks -> (trial, filter in scenario order, step), as in the merged file
             ts = tables.arrow_table(tables.take_rows(ts, np.argsort(ts["trial"], kind="stable")))
     first = int(np.min(trials))
-    timing = tables.arrow_table(tables.timing_columns(res, first))
+    timing = tables.arrow_table(rows.timing_columns(res, first))
     by = {label: int(tc["diverged"][tc["filter"] == label].sum()) for label in dict.fromkeys(tc["filter"].tolist())}
     return ChunkOutput(np.asarray(trials), tables.arrow_table(tc), ts, timing, res.runtime_s,
                        int(tc["diverged"].sum()), by)  # fmt: skip
@@ -212,7 +213,7 @@ def _parquet_meta(scn: Scenario, shash: str, kind: str) -> dict[str, str]:
 
 def _write_table(path: Path, table: pa.Table | tables.Columns, meta: dict[str, str]) -> None:
     """A run table as Parquet, atomically, with the run's metadata and every column's unit."""
-    rundir.write_parquet(path, table, meta, units=tables.COLUMN_UNITS)
+    store.write_parquet(path, table, meta, units=tables.COLUMN_UNITS)
 
 
 def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: integrity.RunSpec) -> None:
@@ -403,8 +404,8 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     trials = _merged(sorted((out / "chunks").glob("trials-*.parquet")), order)
     if spec is not None:
         integrity.check_trials_table(trials, spec)
-    rundir.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"),
-                         units={**tables.COLUMN_UNITS, **dispersion_units(scn)})
+    store.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"),
+                        units={**tables.COLUMN_UNITS, **dispersion_units(scn)})
     files = sorted((out / "chunks").glob("timing-*.parquet"))
     if files:
         _write_table(out / "timing.parquet", _merged(files, order), _parquet_meta(scn, shash, "timing"))
@@ -413,15 +414,15 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     # order by first trial is trial order)
     files = sorted((out / "chunks").glob("timeseries-*.parquet"))
     if files:
-        n_ts = rundir.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"),
-                                           units=tables.COLUMN_UNITS)
+        n_ts = store.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"),
+                                          units=tables.COLUMN_UNITS)
         if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
             raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
-    pt = tables.percentile_columns(trials, list(scn.percentiles))
-    rundir.atomic_write_text(out / "percentiles.csv", tables.csv_text(pt))
+    pt = percentile_columns(trials, list(scn.percentiles))
+    store.atomic_write_text(out / "percentiles.csv", tables.csv_text(pt))
     _write_table(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
-    rundir.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
-                             + tables.percentiles_markdown(pt, trials))  # fmt: skip
+    store.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
+                            + percentiles_markdown(pt, trials))  # fmt: skip
     return trials, pt
 
 
@@ -444,18 +445,18 @@ def _say(opts: RunOptions, lines: list[str], limit: int = 20) -> None:
 
 def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: str) -> tuple[dict, int]:
     """Create ``out`` complete (config, manifest, chunks/) or not at all, locked; return manifest and lock."""
-    manifest = rundir.base_manifest(opts.command)
+    manifest = store.base_manifest(opts.command)
     manifest.update(
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
         filters=[f.label for f in scn.filters], state_dim=13 + 3 * feature_count(scn) + 2,
-        timeseries=opts.timeseries, code_version=code, start=rundir.now_iso(),
+        timeseries=opts.timeseries, code_version=code, start=store.now_iso(),
         end=None, chunks=[],
     )  # fmt: skip
 
     def populate(d: Path) -> None:
         (d / "chunks").mkdir()
-        rundir.atomic_write_text(d / "config.yaml", yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))
-        rundir.write_json(d / "manifest.json", manifest)
+        store.atomic_write_text(d / "config.yaml", yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))
+        store.write_json(d / "manifest.json", manifest)
 
     return manifest, runlock.create_locked(out, opts.overwrite, populate, "spmc run")
 
@@ -533,9 +534,9 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
             scn = _resume_checks(scn, out, opts, manifest, shash)
             manifest["code_version"] = code
             if scn.trials != recorded:
-                rundir.atomic_write_text(out / "config.yaml",
-                                         yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))  # fmt: skip
-            rundir.write_json(out / "manifest.json", manifest)
+                store.atomic_write_text(out / "config.yaml",
+                                        yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))  # fmt: skip
+            store.write_json(out / "manifest.json", manifest)
         return _run_locked(scn, out, opts, progress, manifest, run_spec(scn, shash, opts.timeseries, code), t_start)
     finally:
         runlock.release(lock)
@@ -570,7 +571,7 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
             {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
              "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
         )
-        rundir.write_json(out / "manifest.json", manifest)
+        store.write_json(out / "manifest.json", manifest)
         if progress:
             progress(n_done, scn.trials, dict(n_div))
     v = integrity.verify_chunks(chunk_dir, spec)
@@ -579,9 +580,9 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
         trials, pt = finalize(out, scn, shash, spec.filters, spec)
     except integrity.IntegrityError as exc:
         raise RunError("refusing to merge (nothing published): " + "; ".join(exc.problems)) from None
-    manifest["end"] = rundir.now_iso()
+    manifest["end"] = store.now_iso()
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
-    rundir.write_json(out / "manifest.json", manifest)
+    store.write_json(out / "manifest.json", manifest)
     return RunResult(out, trials, pt, time.perf_counter() - t_start, len(chunks))
 
 

@@ -8,9 +8,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..outputs import rundir, tables
+from ..rundir import store, tables
 from . import engine
-from .trial import ERROR_NAMES
 
 
 class RerunError(Exception):
@@ -54,7 +53,7 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
 
             lines.append(f"  noise stream of its Saltelli block: spawn key ({int(noise_streams(scn, [trial])[0])},)")
     for _, row in recomputed.iterrows():
-        errs = ", ".join(f"{n}={row[n]:.4g}" for n in ERROR_NAMES)
+        errs = ", ".join(f"{n}={row[n]:.4g}" for n in tables.ERROR_NAMES)
         status = "diverged at step %d (%s)" % (row["diverged_step"], row["diverged_reason"]) if row["diverged"] else "ok"
         lines.append(f"  {row['filter']}: {errs}; {status}")
     if stored is not None and len(stored):
@@ -67,8 +66,8 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         out = Path(out)
         try:
             out.parent.mkdir(parents=True, exist_ok=True)
-            rundir.write_parquet(out, co.timeseries_table, {"stereopose_mc.table": "timeseries", "trial": str(trial),
-                                 "stereopose_mc.seed": str(scn.seed)}, units=tables.COLUMN_UNITS)  # fmt: skip
+            store.write_parquet(out, co.timeseries_table, {"stereopose_mc.table": "timeseries", "trial": str(trial),
+                                "stereopose_mc.seed": str(scn.seed)}, units=tables.COLUMN_UNITS)  # fmt: skip
         except OSError as exc:
             raise RerunError(f"--out {out}: cannot write it ({exc.strerror})") from None
         lines.append(f"time series -> {out}")

@@ -42,7 +42,6 @@ from ..sim.truth import Truth
 
 Array = NDArray[np.float64]
 RAD2DEG = 180.0 / np.pi
-ERROR_NAMES = ("e_rho", "e_rho_dot", "e_omega", "e_theta", "e_k1", "e_k2")
 
 
 @dataclass(frozen=True)

@@ -1,1 +1,1 @@
-"""Run directories, Parquet tables, percentile tables, figures and reports."""
+"""Reports on run directories: figures, HTML reports, compare, goldens, sweep and sensitivity reports."""

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..mc.trial import ERROR_NAMES
+from ..rundir.tables import ERROR_NAMES
 
 KEY = ("filter", "population", "percentile")
 VALUE_COLUMNS = (*ERROR_NAMES, "trials", "diverged")

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .rundir import atomic_write_bytes, field_units
+from ..rundir.store import atomic_write_bytes, field_units
 
 TABLES = ("trials", "timeseries", "percentiles", "timing")
 FORMATS = ("csv", "mat", "parquet")

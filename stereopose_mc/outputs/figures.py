@@ -38,9 +38,9 @@ from matplotlib.figure import Figure
 from scipy.stats import chi2
 
 from ..filters.registry import thesis_role
-from ..mc.trial import ERROR_NAMES
-from . import rundir, tables
-from .tables import ERROR_LABELS
+from ..rundir import store
+from ..rundir.percentiles import percentile_table, percentiles_markdown
+from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 
 DPI = 150
 PANEL_SHAPE = (2, 3)
@@ -87,7 +87,7 @@ def save_figure(fig: Figure, out_dir: Path, stem: str) -> tuple[Path, Path]:
             meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
             fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
         path = out_dir / f"{stem}.{ext}"
-        rundir.atomic_write_bytes(path, buf.getvalue())
+        store.atomic_write_bytes(path, buf.getvalue())
         paths.append(path)
     return paths[0], paths[1]
 
@@ -417,12 +417,12 @@ def build_figures(
         png, svg = save_figure(fig, out_dir, key)
         fs.figures.append(FigureFile(key, title, caption, png, svg))
 
-    pt = tables.percentile_table(trials, percentiles)
+    pt = percentile_table(trials, percentiles)
     for label in filters:
         s = safe_name(label)
         sub = pt[pt["filter"] == label]
-        rundir.atomic_write_text(out_dir / f"percentiles-{s}.csv", sub.to_csv(index=False, float_format="%.10g"))
-        rundir.atomic_write_text(out_dir / f"percentiles-{s}.md", f"# {label}\n\n" + tables.percentiles_markdown(sub))
+        store.atomic_write_text(out_dir / f"percentiles-{s}.csv", sub.to_csv(index=False, float_format="%.10g"))
+        store.atomic_write_text(out_dir / f"percentiles-{s}.md", f"# {label}\n\n" + percentiles_markdown(sub))
         fs.tables += [out_dir / f"percentiles-{s}.csv", out_dir / f"percentiles-{s}.md"]
     for label in filters:
         add(error_histograms(trials, label), f"hist-{safe_name(label)}", f"{label}: histograms of per-trial errors",
@@ -472,8 +472,8 @@ def build_figures(
         fs.notes.append("compute-time histogram skipped: the run has no timing.parquet")
     else:
         ct = compute_time_table(timing)
-        rundir.atomic_write_text(out_dir / "compute_time.csv", ct.to_csv(index=False, float_format="%.6g"))
-        rundir.atomic_write_text(out_dir / "compute_time.md", "# Compute time per trial [s]\n\n" + _markdown_table(ct))
+        store.atomic_write_text(out_dir / "compute_time.csv", ct.to_csv(index=False, float_format="%.6g"))
+        store.atomic_write_text(out_dir / "compute_time.md", "# Compute time per trial [s]\n\n" + _markdown_table(ct))
         fs.tables += [out_dir / "compute_time.csv", out_dir / "compute_time.md"]
         add(compute_time_figure(timing), "runtime", "Compute time per trial",
             "Per-trial compute time from timing.parquet (thesis figure 6.37): a filter's wall time on a chunk "

@@ -28,11 +28,12 @@ import yaml
 from .. import __version__
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
 from ..filters.registry import thesis_role
-from ..mc.trial import ERROR_NAMES
+from ..rundir import store
+from ..rundir.percentiles import percentile_table
+from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from . import figures as figs
-from . import rundir, sensitivity_report, tables
+from . import sensitivity_report
 from .summary import summarize
-from .tables import ERROR_LABELS
 
 REQUIRED_FILES = ("config.yaml", "manifest.json", "trials.parquet")
 OPTIONAL_TABLES = ("timeseries.parquet", "timing.parquet")
@@ -434,7 +435,7 @@ def results_summary_html(data: RunData, pt: pd.DataFrame) -> str:
     heads = ["filter", "type", "trials", "converged", "diverged (reasons)",
              *[f"median {ERROR_LABELS[n]}" for n in ERROR_NAMES], "consistency"]  # fmt: skip
     rows, verdicts = [], []
-    p50 = pt if 50 in set(pt["percentile"]) else tables.percentile_table(data.trials, [50])
+    p50 = pt if 50 in set(pt["percentile"]) else percentile_table(data.trials, [50])
     for s in sums:
         med = p50[(p50["filter"] == s.label) & (p50["population"] == "converged") & (p50["percentile"] == 50)]
         vals = [med[n].iloc[0] if len(med) else np.nan for n in ERROR_NAMES]
@@ -453,7 +454,7 @@ def results_summary_html(data: RunData, pt: pd.DataFrame) -> str:
 
 def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = None) -> str:
     """The report's HTML text; ``extra``: HTML blocks placed before the figures (the sensitivity section)."""
-    pt = tables.percentile_table(data.trials, data.percentiles)
+    pt = percentile_table(data.trials, data.percentiles)
     case = thesis_case(data.name)
     types = data.filter_types
     window = data.window_start
@@ -554,7 +555,7 @@ def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = Non
     sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters)
     fs.figures.extend(sens_figs)
     out = data.path / "report.html"
-    rundir.atomic_write_text(out, render_report(data, fs, sens_html))
+    store.atomic_write_text(out, render_report(data, fs, sens_html))
     return out
 
 
@@ -565,7 +566,7 @@ INDEX_PERCENTILES = (50.0, 90.0)
 
 def index_rows(data: RunData, link: str, shown: str) -> list[list[str]]:
     """One row per filter: run link, filter, trials, diverged, median and p90 of each error (converged)."""
-    pt = tables.percentile_table(data.trials, list(INDEX_PERCENTILES))
+    pt = percentile_table(data.trials, list(INDEX_PERCENTILES))
     rows = []
     for label in data.filters:
         g = pt[(pt["filter"] == label) & (pt["population"] == "converged")].set_index("percentile")
@@ -600,5 +601,5 @@ def build_index(folder: Path, runs: list[Path], failed: dict[Path, list[str]] | 
                  for p, pr in failed.items()]
         body.append("</ul>")
     out = folder / "index.html"
-    rundir.atomic_write_text(out, page(f"Monte Carlo runs in {folder.name}", body))
+    store.atomic_write_text(out, page(f"Monte Carlo runs in {folder.name}", body))
     return out

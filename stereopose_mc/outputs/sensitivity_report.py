@@ -15,15 +15,16 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from ..config.schema import Scenario
+from ..rundir.tables import ERROR_LABELS
 from ..studies import sensitivity as sens
 from . import figures as figs
-from . import rundir
+from ..rundir import store
 
 TOP_SCATTER = 6
 
 
 def _label(metric: str) -> str:
-    return figs.ERROR_LABELS.get(metric, metric)
+    return ERROR_LABELS.get(metric, metric)
 
 
 def heatmap(table: pd.DataFrame, label: str, params: list[str]) -> Figure:
@@ -87,7 +88,7 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
     body = ["<h2>Sensitivity: what drives the error</h2>"]
     if res is None:
         return body + ["<p>No dispersed scalar varies in this run.</p>"], []
-    rundir.atomic_write_text(run_dir / "sensitivity.csv", res.table.to_csv(index=False, float_format="%.6g"))
+    store.atomic_write_text(run_dir / "sensitivity.csv", res.table.to_csv(index=False, float_format="%.6g"))
     if res.table.empty:
         return body + [f"<p>Too few converged, valid trials for any correlation ({res.invalid} invalid draws).</p>"], []
     n_pairs = res.table.groupby("filter").size().max() if len(res.table) else 0
@@ -124,7 +125,7 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
             fig_files.append(figs.FigureFile(stem, f"{label}: scatter plots of the top drivers",
                                              "The six (metric, scalar) pairs with the largest |rho|.", png, svg))
     if res.sobol is not None:
-        rundir.atomic_write_text(run_dir / "sobol.csv", res.sobol.to_csv(index=False, float_format="%.6g"))
+        store.atomic_write_text(run_dir / "sobol.csv", res.sobol.to_csv(index=False, float_format="%.6g"))
         body.append("<h3>Sobol indices (SALib)</h3><p>First-order S1 and total ST indices of each input factor "
                     "(the unit-cube coordinates of the plan), with SALib's 95 % bootstrap half-widths; the factors "
                     "with the largest ST per metric. Full table: <code>sobol.csv</code>.</p>")  # fmt: skip

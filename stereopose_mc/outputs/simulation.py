@@ -12,7 +12,7 @@ import yaml
 from ..config.resolve import setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..core import camera, state as st
-from .rundir import atomic_write_text, base_manifest, now_iso, prepare_dir, write_json, write_parquet
+from ..rundir.store import atomic_write_text, base_manifest, now_iso, prepare_dir, write_json, write_parquet
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
 

@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from ..mc.trial import ERROR_NAMES
+from ..rundir import store
+from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from ..studies import sweep as sw
 from . import figures as figs
-from . import rundir
 
 
 def _numeric(values: list) -> bool:
@@ -49,7 +49,7 @@ def sweep_figure(summary: pd.DataFrame, spec: dict, label: str, x_axis: int = 0)
             ax.fill_between(x[order], lo, hi, color=line.get_color(), alpha=0.2)
         axs[6].plot(x[order], 100 * sub["divergence_rate"].to_numpy(float)[order], marker="o", label=lab)
     for ax, name in zip(axs, ERROR_NAMES):
-        ax.set_ylabel(figs.ERROR_LABELS[name])
+        ax.set_ylabel(ERROR_LABELS[name])
         ax.set_yscale("log")
     axs[6].set_ylabel("diverged [%]")
     for ax in axs[:7]:
@@ -72,7 +72,7 @@ def build_sweep_report(out: Path) -> Path:
     if missing:
         raise sw.SweepError(f"{out}: unfinished points {', '.join(missing)}; rerun the sweep command to finish them")
     summary = sw.summary(out)
-    rundir.atomic_write_text(out / "sweep.csv", summary.to_csv(index=False, float_format="%.6g"))
+    store.atomic_write_text(out / "sweep.csv", summary.to_csv(index=False, float_format="%.6g"))
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
     runs = [out / p["name"] for p in spec["points"]]
@@ -88,7 +88,7 @@ def build_sweep_report(out: Path) -> Path:
             "<code>percentiles.csv</code> (for <code>spmc compare</code>); per-run reports: "
             "<a href=\"index.html\">index.html</a>.</p>"]  # fmt: skip
     paths = [a["path"] for a in spec["axes"]]
-    heads = ["point", *paths, "filter", "trials", "diverged %"] + [figs.ERROR_LABELS[n] for n in ERROR_NAMES]
+    heads = ["point", *paths, "filter", "trials", "diverged %"] + [ERROR_LABELS[n] for n in ERROR_NAMES]
     rows = []
     for r in summary.to_dict("records"):
         cells = [f"<a href=\"{esc(r['point'])}/report.html\">{esc(r['point'])}</a>", *[esc(r[p]) for p in paths],
@@ -105,5 +105,5 @@ def build_sweep_report(out: Path) -> Path:
                                                  "Lines: medians; bands: 10-90 % of the converged trials; "
                                                  "bottom right: share of diverged trials.", png, svg), out))  # fmt: skip
     path = out / "report.html"
-    rundir.atomic_write_text(path, page(f"Sweep: {spec['scenario']}", body))
+    store.atomic_write_text(path, page(f"Sweep: {spec['scenario']}", body))
     return path

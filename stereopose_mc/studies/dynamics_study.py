@@ -50,7 +50,7 @@ from ..config.schema import Scenario
 from ..core import state as st
 from ..core.dynamics import translational_acceleration
 from ..core.orbit import Orbit, leader_kinematics
-from ..outputs import rundir
+from ..rundir import store
 from . import coupled as cp
 from .cw import cw_intercept_velocity, cw_propagate
 
@@ -449,7 +449,7 @@ def _save(fig, out: Path, stem: str) -> list[Path]:
             meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
             fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
         p = out / f"{stem}.{ext}"
-        rundir.atomic_write_bytes(p, buf.getvalue())
+        store.atomic_write_bytes(p, buf.getvalue())
         paths.append(p)
     return paths
 
@@ -578,14 +578,14 @@ def write_outputs(r: DynamicsResult, out: Path, command: list[str] | None = None
     files = make_figures(r, out)
     summary = summary_frame(r)
     for name, df in (("dynamics.csv", summary), ("timing.csv", r.timing)):
-        rundir.atomic_write_text(out / name, df.to_csv(index=False, float_format="%.10g"))
+        store.atomic_write_text(out / name, df.to_csv(index=False, float_format="%.10g"))
         files.append(out / name)
     cmd = " ".join(command) if command else None
-    rundir.atomic_write_text(out / "dynamics.md", markdown_report(r, summary, cmd) + "\n")
+    store.atomic_write_text(out / "dynamics.md", markdown_report(r, summary, cmd) + "\n")
     files.append(out / "dynamics.md")
-    manifest = {**rundir.base_manifest(command), "kind": "dynamics", "scenario": r.scenario,
+    manifest = {**store.base_manifest(command), "kind": "dynamics", "scenario": r.scenario,
                 "options": asdict(r.options), "horizon_s": r.horizon, "files": sorted(p.name for p in files)}
-    rundir.write_json(out / "manifest.json", manifest)
+    store.write_json(out / "manifest.json", manifest)
     files.append(out / "manifest.json")
     return files
 
@@ -627,10 +627,10 @@ def run_dynamics(
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise rundir.RunDirError(f"{out} exists and is not a directory; choose another --out")
+        raise store.RunDirError(f"{out} exists and is not a directory; choose another --out")
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise rundir.RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
+        raise store.RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
     r = run_studies(scn, options)
-    rundir.prepare_dir(out, overwrite)
+    store.prepare_dir(out, overwrite)
     r.files = write_outputs(r, out, command)
     return r

@@ -30,7 +30,7 @@ import pandas as pd
 from scipy import stats
 
 from ..config.schema import Scenario
-from ..mc.trial import ERROR_NAMES
+from ..rundir.tables import ERROR_NAMES
 from ..sim import dispersions as sd
 
 DIVERGED = "diverged"

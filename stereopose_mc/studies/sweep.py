@@ -26,7 +26,8 @@ import yaml
 from ..config.loader import ScenarioError, load_scenario_text
 from ..config.schema import Scenario
 from ..mc import engine
-from ..outputs import rundir
+from ..rundir import store
+from ..rundir.tables import ERROR_NAMES
 
 SWEEP_FILE = "sweep.json"
 
@@ -210,8 +211,8 @@ def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = Fa
         if out.exists() and any(out.iterdir()):
             raise SweepError(f"{out} already exists and is not a sweep directory")
         out.mkdir(parents=True, exist_ok=True)
-        spec.update(rundir.base_manifest(opts.command), start=rundir.now_iso(), end=None)
-        rundir.write_json(sweep_file, spec)
+        spec.update(store.base_manifest(opts.command), start=store.now_iso(), end=None)
+        store.write_json(sweep_file, spec)
     res = SweepResult(out, points)
     for i, p in enumerate(points):
         d = out / p.name
@@ -233,8 +234,8 @@ def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = Fa
                 engine.run(p.scenario, d, o, prog)
         res.ran.append(p.name)
     write_percentiles(out, points)
-    spec["end"] = rundir.now_iso()
-    rundir.write_json(sweep_file, spec)
+    spec["end"] = store.now_iso()
+    store.write_json(sweep_file, spec)
     return res
 
 
@@ -246,7 +247,7 @@ def write_percentiles(out: Path, points: list[Point]) -> pd.DataFrame:
         pt["filter"] = p.name + "/" + pt["filter"].astype(str)
         frames.append(pt)
     df = pd.concat(frames, ignore_index=True)
-    rundir.atomic_write_text(out / "percentiles.csv", df.to_csv(index=False, float_format="%.10g"))
+    store.atomic_write_text(out / "percentiles.csv", df.to_csv(index=False, float_format="%.10g"))
     return df
 
 
@@ -268,8 +269,6 @@ def is_sweep_dir(path: Path) -> bool:
 def summary(out: Path, quantiles: tuple[float, ...] = (10.0, 50.0, 90.0)) -> pd.DataFrame:
     """Per point and filter: the swept values, trials, divergence rate and quantiles of each metric (converged)."""
     import numpy as np
-
-    from ..mc.trial import ERROR_NAMES
 
     spec = load_sweep(out)
     rows = []

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from ..config.resolve import Setup
 from ..core import dynamics, state as st
 from ..core import quaternion as qt
-from ..outputs import rundir
+from ..rundir import store
 from ..sim.truth import Truth, simulate_truth
 
 Array = NDArray[np.float64]
@@ -144,8 +144,8 @@ def write_mismatch(setup: Setup, out: Path) -> tuple[pd.DataFrame, list[Path]]:
     ms = mismatch_study(setup)
     df = mismatch_frame(ms)
     out = Path(out)
-    rundir.atomic_write_text(out / "truth_mismatch.csv", df.to_csv(index=False, float_format="%.10g"))
-    rundir.atomic_write_text(out / "truth_mismatch.md", markdown(df, float(setup.times[-1])) + "\n")
+    store.atomic_write_text(out / "truth_mismatch.csv", df.to_csv(index=False, float_format="%.10g"))
+    store.atomic_write_text(out / "truth_mismatch.md", markdown(df, float(setup.times[-1])) + "\n")
     return df, [out / "truth_mismatch.csv", out / "truth_mismatch.md", *figure(ms, out)]
 
 

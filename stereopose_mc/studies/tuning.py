@@ -32,7 +32,8 @@ from ..config.resolve import DEG, FilterSetup, block_diag
 from ..config.schema import ProcessNoiseConfig, Scenario
 from ..mc import engine
 from ..core import errorstate as es
-from ..mc.trial import ERROR_NAMES, run_chunk
+from ..mc.trial import run_chunk
+from ..rundir.tables import ERROR_NAMES
 
 BLOCKS = ("rho", "rho_dot", "omega", "q", "feature_points", "k")
 KEYS = {"rho": "rho_m2", "rho_dot": "rho_dot_m2ps2", "omega": "omega_deg2ps2", "q": "q",

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from outputs.output_helpers import spmc
 from stereopose_mc.outputs import compare as cmp
-from stereopose_mc.outputs import tables
+from stereopose_mc.rundir import percentiles
 
 
 def synthetic_table(seed: int = 3) -> pd.DataFrame:
@@ -24,7 +24,7 @@ def synthetic_table(seed: int = 3) -> pd.DataFrame:
             div = f == "ekf" and t in (3, 7)
             e = {n: (np.nan if div else float(rng.lognormal())) for n in tables.ERROR_UNITS}
             rows.append({"trial": t, "filter": f, "diverged": div, **e})
-    return tables.percentile_table(pd.DataFrame(rows), [50, 70, 90, 100])
+    return percentiles.percentile_table(pd.DataFrame(rows), [50, 70, 90, 100])
 
 
 def write(df: pd.DataFrame, path):

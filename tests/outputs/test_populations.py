@@ -2,7 +2,8 @@
 
 import pandas as pd
 
-from stereopose_mc.outputs import consistency, tables
+from stereopose_mc.outputs import consistency
+from stereopose_mc.rundir import percentiles
 
 
 def frame():
@@ -15,14 +16,14 @@ def frame():
 
 
 def test_population_note_lists_the_left_out_trials_by_reason():
-    note = tables.population_note(frame(), "iekf")
+    note = percentiles.population_note(frame(), "iekf")
     assert "- filter lost (1): 3" in note and "- inconsistent (1): 1" in note
-    assert tables.population_note(frame().assign(diverged=False), "iekf").startswith("Both populations")
+    assert percentiles.population_note(frame().assign(diverged=False), "iekf").startswith("Both populations")
 
 
 def test_not_observable_uses_the_converged_trials_final_sigma():
     # converged trials 0 and 2: k1 kept 0.9 and 0.8 of its sigma (median 0.85), k2 0.1 and 0.2
-    got = tables.not_observable(frame(), "iekf")
+    got = percentiles.not_observable(frame(), "iekf")
     assert list(got) == ["k1"] and abs(got["k1"] - 0.85) < 1e-12
 
 

@@ -17,6 +17,7 @@ from outputs.output_helpers import copy_run, spmc
 from stereopose_mc.data import thesis_case, thesis_percentiles
 from stereopose_mc.outputs import figures as figs
 from stereopose_mc.outputs import report as rep
+from stereopose_mc.rundir.tables import ERROR_NAMES
 
 FULL_STEMS = ["hist-iekf", "hist-ekf", "diff-ekf-iekf", "time-iekf", "time-ekf", "nees-iekf", "nees-ekf",
               "nis-iekf", "nis-ekf", "runtime"]  # fmt: skip
@@ -199,7 +200,7 @@ def test_trials_parquet_without_error_columns(run_dir, tmp_path):
 
 def trials_table(rows):
     """rows: (trial, filter, diverged, e) with the same e for the six errors."""
-    d = [{"trial": t, "filter": f, "diverged": dv, **{n: e for n in figs.ERROR_NAMES}} for t, f, dv, e in rows]
+    d = [{"trial": t, "filter": f, "diverged": dv, **{n: e for n in ERROR_NAMES}} for t, f, dv, e in rows]
     return pd.DataFrame(d)
 
 

@@ -9,7 +9,7 @@ import yaml
 from scenarios import scenario_dict
 
 from stereopose_mc.config import load_scenario_text
-from stereopose_mc.mc.trial import ERROR_NAMES
+from stereopose_mc.rundir.tables import ERROR_NAMES
 from stereopose_mc.sim import dispersions as sd
 from stereopose_mc.studies import sensitivity as sens
 

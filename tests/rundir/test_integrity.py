@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from stereopose_mc.outputs import integrity, runlock
-from stereopose_mc.outputs.rundir import RunDirError
+from stereopose_mc.rundir import integrity, runlock
+from stereopose_mc.rundir.store import RunDirError
 
 from cli_helpers import one_error_line, run_ok, spmc
 

@@ -8,7 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from stereopose_mc.outputs import compare as cmp
-from stereopose_mc.outputs import rundir, tables
+from stereopose_mc.rundir import percentiles, store, tables
 
 from cli_helpers import run_ok, spmc
 
@@ -24,16 +24,16 @@ def run(quick_scenario, tmp_path_factory):
 
 @pytest.mark.parametrize("name", TABLES)
 def test_every_field_has_its_unit(run, name):
-    units = rundir.field_units(run / name)
+    units = store.field_units(run / name)
     missing = [c for c, u in units.items() if u is None]
-    assert not missing, f"{name}: no unit for {missing}; add them to outputs.tables.COLUMN_UNITS and docs/outputs.md"
+    assert not missing, f"{name}: no unit for {missing}; add them to rundir.tables.COLUMN_UNITS and docs/outputs.md"
     expect = {"e_rho": "m", "e_rho_dot": "m/s", "e_omega": "deg/s", "e_theta": "deg", "t": "s", "runtime_s": "s"}
     assert {c: units[c] for c in units if c in expect} == {c: expect[c] for c in units if c in expect}
 
 
 @pytest.mark.parametrize("name", TABLES)
 def test_file_metadata_names_scenario_hash_and_seed(run, name):
-    md = rundir.read_parquet_metadata(run / name)
+    md = store.read_parquet_metadata(run / name)
     man = pd.read_json(run / "manifest.json", typ="series")
     assert md["stereopose_mc.seed"] == "11" and md["stereopose_mc.scenario_hash"] == man["scenario_hash"]
     assert md["stereopose_mc.table"] == name.removesuffix(".parquet")
@@ -47,7 +47,7 @@ def test_documented_units_match_the_files(run):
     doc = (Path(__file__).resolve().parents[2] / "docs" / "outputs.md").read_text(encoding="utf-8")
     files = {}
     for name in TABLES:
-        files.update({c: u for c, u in rundir.field_units(run / name).items() if c != "percentile"})
+        files.update({c: u for c, u in store.field_units(run / name).items() if c != "percentile"})
     tables = re.findall(r"^\| column \| unit \| meaning \|\n((?:\|.*\n)+)", doc, flags=re.M)
     assert len(tables) >= 3  # trials, timeseries, timing
     checked = 0
@@ -62,7 +62,7 @@ def test_documented_units_match_the_files(run):
 def test_percentiles_are_integers(run):
     assert pq.read_schema(run / "percentiles.parquet").field("percentile").type == "int64"
     assert pd.read_parquet(run / "percentiles.parquet")["percentile"].tolist()[:4] == [50, 70, 90, 100]
-    pt = tables.percentile_table(pd.read_parquet(run / "trials.parquet"), [50, 99.9])
+    pt = percentiles.percentile_table(pd.read_parquet(run / "trials.parquet"), [50, 99.9])
     assert pt["percentile"].tolist()[:2] == [50.0, 99.9]  # a fractional request keeps floats
 
 
@@ -78,7 +78,7 @@ def test_compare_reads_old_float_percentile_tables(run, tmp_path):
 
 @pytest.mark.parametrize("name", TABLES)
 def test_float_columns_are_written_without_dictionary_pages(run, name):
-    """``rundir.parquet_options``: dictionary pages only for the columns that are not floating point (a dictionary
+    """``store.parquet_options``: dictionary pages only for the columns that are not floating point (a dictionary
     of nearly all-distinct floats costs time and size), zstd everywhere; the values read back are the table's."""
     import pyarrow.types as pat
 
@@ -100,7 +100,7 @@ def test_float_columns_are_written_without_dictionary_pages(run, name):
 
 def test_parquet_options_round_trip(tmp_path):
     df = pd.DataFrame({"filter": ["iekf", "ekf"] * 50, "trial": range(100), "e": [0.1 * i for i in range(100)]})
-    rundir.write_parquet(tmp_path / "t.parquet", df, {"k": "v"})
+    store.write_parquet(tmp_path / "t.parquet", df, {"k": "v"})
     back = pd.read_parquet(tmp_path / "t.parquet")
     pd.testing.assert_frame_equal(back, df)
     enc = {f.name: pq.ParquetFile(tmp_path / "t.parquet").metadata.row_group(0).column(i).dictionary_page_offset

@@ -30,7 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from . import rundir
+from . import store
+from .tables import columns_of
 
 SIDE_RE = re.compile(r"^chunk-(\d{7})-(\d{7})\.json$")
 KINDS = ("trials", "timing", "timeseries")
@@ -47,7 +48,7 @@ class IntegrityError(Exception):
 
 def code_version() -> str:
     """The package version and the git revision of its checkout (when it is one)."""
-    return f"{__version__}+{rundir.git_revision() or 'unknown'}"
+    return f"{__version__}+{store.git_revision() or 'unknown'}"
 
 
 def run_id(scenario_hash: str, seed: int, code: str) -> str:
@@ -107,7 +108,7 @@ def write_sidecar(chunk_dir: Path, spec: RunSpec, first: int, last: int, diverge
             files[name] = {"sha256": file_sha256(chunk_dir / name), "rows": spec.rows(kind, first, last)}
     rec = {"run_id": spec.run_id, "first": first, "last": last, "steps": spec.steps, "files": files,
            "diverged": {k: int(v) for k, v in diverged.items()}}  # fmt: skip
-    rundir.write_json(chunk_dir / sidecar_name(first, last), rec)
+    store.write_json(chunk_dir / sidecar_name(first, last), rec)
 
 
 @dataclass
@@ -132,7 +133,7 @@ class Verified:
 def _foreign_reason(path: Path, spec: RunSpec) -> str:
     """Why a file whose checksum does not match was rejected, as precisely as its metadata tells."""
     try:
-        md = rundir.read_parquet_metadata(path)
+        md = store.read_parquet_metadata(path)
     except Exception:  # noqa: BLE001 - any unreadable file is "truncated or corrupt"
         return "truncated or corrupt (not a readable Parquet file)"
     if md.get("stereopose_mc.run_id", spec.run_id) != spec.run_id:
@@ -229,8 +230,6 @@ def check_complete(v: Verified, spec: RunSpec) -> None:
 
 def check_trials_table(df: Any, spec: RunSpec) -> None:
     """Exactly one row per trial x filter, trials 0..N-1, the run's filters (a DataFrame or ``tables.Columns``)."""
-    from .tables import columns_of
-
     c = columns_of(df)
     pairs = list(zip(c["trial"].tolist(), c["filter"].tolist()))
     n = len(pairs)

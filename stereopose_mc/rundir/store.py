@@ -1,4 +1,4 @@
-"""Run directories: atomic writes, manifests, Parquet with metadata."""
+"""The run directory's files: atomic writes, manifests, Parquet with metadata and units."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ if TYPE_CHECKING:  # pandas and pyarrow are imported where used, so that `spmc -
 
 from .. import __version__
 from ..config.schema import SCHEMA_VERSION
+from .tables import arrow_table
 
 
 class RunDirError(Exception):
@@ -133,7 +134,7 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table | dict, metadata: dict
     """Write a table as Parquet atomically, with ``metadata`` in the file's key-value metadata
     and ``units`` in its fields' metadata.
 
-    ``df``: a pandas DataFrame, a pyarrow Table or ``outputs.tables.Columns`` (the run path,
+    ``df``: a pandas DataFrame, a pyarrow Table or ``rundir.tables.Columns`` (the run path,
     which does not import pandas). Written without pandas' index and with a fixed writer so
     that the same table gives the same bytes. ``units``: column -> unit, stored as the field
     metadata ``unit``.
@@ -142,8 +143,6 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table | dict, metadata: dict
     import pyarrow.parquet as pq
 
     if isinstance(df, dict):
-        from .tables import arrow_table
-
         table = arrow_table(df)
     elif isinstance(df, pa.Table):
         table = df
@@ -185,7 +184,7 @@ def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, st
     n_buf = n_all = 0
     try:
         for src in sources:
-            t = pq.ParquetFile(src).read()  # not pq.read_table: it imports pandas (outputs/arrow.py)
+            t = pq.ParquetFile(src).read()  # not pq.read_table: it imports pandas (rundir/arrow.py)
             # the output's metadata only: the sources' own (e.g. a chunk's trial range) would
             # make the bytes depend on the chunking
             t = t.replace_schema_metadata({k.encode(): str(v).encode() for k, v in (metadata or {}).items()})

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .rundir import RunDirError, now_iso, umask
+from .store import RunDirError, now_iso, umask
 
 LOCK_NAME = ".lock"
 

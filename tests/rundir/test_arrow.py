@@ -1,4 +1,4 @@
-"""``outputs/arrow.py`` against pyarrow's own converters; the run path's tables against pandas."""
+"""``rundir/arrow.py`` against pyarrow's own converters; the run path's tables against pandas."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stereopose_mc.outputs import arrow, tables
+from stereopose_mc.rundir import arrow, percentiles, store, tables
 
 FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
 TEXT = st.one_of(st.none(), st.text(max_size=6))
@@ -95,13 +95,12 @@ def _frame() -> dict[str, np.ndarray]:
 
 def test_a_table_of_columns_is_the_parquet_file_pandas_wrote(tmp_path):
     """The same bytes as ``pa.Table.from_pandas`` (what the run path wrote before it stopped using pandas)."""
-    from stereopose_mc.outputs import rundir
 
     cols = _frame()
     meta = {"stereopose_mc.table": "trials"}
     units = {"e_rho": "m", "trial": "-"}
-    rundir.write_parquet(tmp_path / "a.parquet", cols, meta, units)
-    rundir.write_parquet(tmp_path / "b.parquet", pd.DataFrame(cols), meta, units)
+    store.write_parquet(tmp_path / "a.parquet", cols, meta, units)
+    store.write_parquet(tmp_path / "b.parquet", pd.DataFrame(cols), meta, units)
     assert (tmp_path / "a.parquet").read_bytes() == (tmp_path / "b.parquet").read_bytes()
     back = tables.columns_of(pq.ParquetFile(tmp_path / "a.parquet").read())
     assert all(_same(back[k], v) for k, v in cols.items())
@@ -119,7 +118,7 @@ def test_percentiles_csv_and_markdown_match_pandas():
     cols["e_k1"][3] = np.nan
     df = pd.DataFrame(cols)
     for pcts in ([50, 70, 90, 100], [50, 99.9]):
-        pt = tables.percentile_columns(cols, pcts)
+        pt = percentiles.percentile_columns(cols, pcts)
         ref = []
         for label, g in df.groupby("filter", sort=False):
             div = g["diverged"].to_numpy()
@@ -137,10 +136,10 @@ def test_percentiles_csv_and_markdown_match_pandas():
         expect = pd.DataFrame(pt).to_csv(index=False, float_format="%.10g")
         assert tables.csv_text(pt) == expect
         # the same table from a DataFrame, a pyarrow Table or columns
-        assert tables.percentiles_markdown(pt, cols) == tables.percentiles_markdown(pd.DataFrame(pt), df)
-        assert tables.percentiles_markdown(tables.arrow_table(pt), tables.arrow_table(cols)) == \
-            tables.percentiles_markdown(pt, cols)  # fmt: skip
-    assert "inf" in tables.csv_text(tables.percentile_columns(cols, [100]))
+        assert percentiles.percentiles_markdown(pt, cols) == percentiles.percentiles_markdown(pd.DataFrame(pt), df)
+        assert percentiles.percentiles_markdown(tables.arrow_table(pt), tables.arrow_table(cols)) == \
+            percentiles.percentiles_markdown(pt, cols)  # fmt: skip
+    assert "inf" in tables.csv_text(percentiles.percentile_columns(cols, [100]))
 
 
 def test_a_run_imports_neither_pandas_nor_scipy_linalg(quick_scenario, tmp_path):
@@ -164,13 +163,12 @@ def test_a_run_imports_neither_pandas_nor_scipy_linalg(quick_scenario, tmp_path)
 def test_chunk_files_merge_as_pandas_would(tmp_path):
     """``engine._merged``: concatenated and sorted by (trial, filter in the scenario's order), stably."""
     from stereopose_mc.mc import engine
-    from stereopose_mc.outputs import rundir
 
     cols = _frame()
     files = []
     for i, rows in enumerate((np.arange(0, 9), np.arange(9, 23))):  # filter-major blocks, as a chunk writes them
         part = tables.take_rows(cols, rows[np.argsort(cols["filter"][rows] != "ekf", kind="stable")])
-        rundir.write_parquet(tmp_path / f"trials-{i}.parquet", part)
+        store.write_parquet(tmp_path / f"trials-{i}.parquet", part)
         files.append(tmp_path / f"trials-{i}.parquet")
     order = {"ekf": 0, "iekf": 1}
     got = engine._merged(files, order)
@@ -190,21 +188,3 @@ def test_a_run_result_reads_as_its_files(quick_scenario, tmp_path):
     pd.testing.assert_frame_equal(res.trials, pd.read_parquet(out / "trials.parquet"))
     pd.testing.assert_frame_equal(res.percentiles, pd.read_parquet(out / "percentiles.parquet"))
     assert (out / "percentiles.csv").read_text() == res.percentiles.to_csv(index=False, float_format="%.10g")
-
-
-@settings(max_examples=60, deadline=None)
-@given(st.integers(1, 40), st.integers(0, 130), st.floats(0.0, 1.0), st.integers(0, 2**32 - 1))
-def test_row_means_are_each_rows_own_whatever_the_batch(rows, width, nan_share, seed):
-    """``tables.row_nanmean``: each row's mean of its non-NaN values, bit for bit that of the row reduced alone
-    (``row[~isnan(row)].mean()``), and the same bits when fewer rows share the array (the rows without NaN are
-    reduced together: numpy's pairwise sum along the contiguous axis, per row)."""
-    rng = np.random.default_rng(seed)
-    a = rng.standard_normal((rows, width)) * 10.0 ** rng.uniform(-8, 8, (rows, width))
-    a[rng.random((rows, width)) < nan_share * rng.random((rows, 1))] = np.nan
-    got = tables.row_nanmean(a)
-    want = np.array([r[~np.isnan(r)].mean() if (~np.isnan(r)).any() else np.nan for r in a])
-    np.testing.assert_array_equal(got, want)
-    k = max(1, rows // 3)
-    np.testing.assert_array_equal(tables.row_nanmean(a[k:]), got[k:])
-    np.testing.assert_array_equal(tables.row_nanmean(a[:, None, :])[:, 0], got)  # any leading shape
-    np.testing.assert_array_equal(tables.row_nanmean(np.asfortranarray(a)), got)  # any memory order
