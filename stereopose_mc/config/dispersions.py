@@ -38,11 +38,8 @@ DISPERSIBLE: dict[str, str] = {
     "measurements.disparity_sigma": "-",
     "measurements.inertia_pseudo_measurement.angular_acceleration_sigma_radps2": "rad/s^2",
 }
-#: keys whose value is a state the filter estimates: ``applies_to: both`` centres its initial estimate there
-STATE_PREFIXES = ("truth_initial_state.", "target.")
 #: keys of the filter's model: ``applies_to: both`` gives the filter the dispersed value
 MODEL_PREFIXES = ("leader.", "camera.", "measurements.")
-BOUNDED = ("uniform", "truncnormal", "choice")
 DEFAULT_MODE = {"normal": "add", "truncnormal": "add", "uniform": "add", "lognormal": "scale", "choice": "replace",
                 "uniform_rotation": "replace", "uniform_direction": "replace"}  # fmt: skip
 

@@ -358,7 +358,6 @@ class TruthModelConfig(_Model):
 
 Number = Annotated[float, Field(allow_inf_nan=False)]
 Param = Union[Number, list[Number], list[list[Number]]]
-DIST_NAMES = ("normal", "truncnormal", "uniform", "lognormal", "choice", "uniform_rotation", "uniform_direction")
 
 
 class MagnitudeSpec(_Model):

@@ -88,14 +88,6 @@ def errors_of(x_hat: Array, x_true: Array, kernels: str = "numpy") -> Array:
     return errors(x_hat, x_true)
 
 
-def state_error(x_hat: Array, x_true: Array) -> Array:
-    """``x_hat - x_true`` with the true quaternion's sign aligned to the estimate's."""
-    xt = np.broadcast_to(x_true, x_hat.shape).copy()
-    s = np.sign(np.sum(xt[..., st.QUAT] * x_hat[..., st.QUAT], axis=-1))
-    xt[..., st.QUAT] *= np.where(s == 0, 1.0, s)[..., None]
-    return x_hat - xt
-
-
 def positive_definite(P: Array) -> Array:
     """Per-trial Cholesky success ``(B,)``."""
     try:

@@ -19,7 +19,6 @@ from scipy.special import chdtri
 from ..core import errorstate as es
 
 NEES_LIMIT = 2.0  # a median NEES/dof above this is called overconfident (issue 10's target)
-NEES_LOW = 0.2  # below this: pessimistic (the filter claims far more uncertainty than it has)
 
 
 @dataclass(frozen=True)

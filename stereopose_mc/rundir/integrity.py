@@ -34,7 +34,6 @@ from . import store
 from .tables import columns_of
 
 SIDE_RE = re.compile(r"^chunk-(\d{7})-(\d{7})\.json$")
-KINDS = ("trials", "timing", "timeseries")
 SUMMARY_TRIALS = 100  # trials kept in the time series with --timeseries summary
 
 
@@ -242,11 +241,3 @@ def check_trials_table(df: Any, spec: RunSpec) -> None:
         problems.append(f"trials table: {n} rows, expected {spec.trials} trials x {len(spec.filters)} filters")
     if problems:
         raise IntegrityError(problems)
-
-
-def check_rows(path: Path, want: int, what: str) -> None:
-    import pyarrow.parquet as pq  # here: a new run first needs it for its first chunk, while other chunks compute
-
-    n = pq.ParquetFile(path).metadata.num_rows
-    if n != want:
-        raise IntegrityError([f"{path}: {n} rows, expected {want} ({what})"])

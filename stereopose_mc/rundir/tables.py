@@ -42,8 +42,6 @@ COLUMN_UNITS = {
 }  # fmt: skip
 NEES_PARTS = tuple(k for k in es.nees_dof(es.BLOCK_PROBE_N) if k != "nees")  # nees_<block>, nees_gauge
 COLUMN_UNITS.update({n: "-" for n in NEES_PARTS} | {f"{n}_mean": "-" for n in NEES_PARTS})
-TS_COLUMNS = ["trial", "filter", "step", "t", *ERROR_NAMES, "nees", "nis", "nis_dof", "iterations", "converged",
-              "gated", *NEES_PARTS]  # fmt: skip
 
 
 def columns_of(table: Any) -> Columns:
@@ -98,5 +96,3 @@ def csv_text(cols: Columns, float_format: str = "%.10g") -> str:
     for row in zip(*(v.tolist() if v.dtype != object else v for v in cols.values())):
         w.writerow([cell(v) for v in row])
     return buf.getvalue()
-
-

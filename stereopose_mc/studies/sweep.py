@@ -262,10 +262,6 @@ def load_sweep(out: Path) -> dict:
     return spec
 
 
-def is_sweep_dir(path: Path) -> bool:
-    return (Path(path) / SWEEP_FILE).is_file()
-
-
 def summary(out: Path, quantiles: tuple[float, ...] = (10.0, 50.0, 90.0)) -> pd.DataFrame:
     """Per point and filter: the swept values, trials, divergence rate and quantiles of each metric (converged)."""
     import numpy as np

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from outputs.output_helpers import spmc
 from stereopose_mc.outputs import compare as cmp
-from stereopose_mc.rundir import percentiles
+from stereopose_mc.rundir import percentiles, tables
 
 
 def synthetic_table(seed: int = 3) -> pd.DataFrame:
