@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from stereopose_mc.cli.main import app
 from stereopose_mc.config import load_scenario
 from stereopose_mc.core import mesh as M
-from stereopose_mc.config.meshio import write_obj, write_ply, write_stl
+from stereopose_mc.config.meshfiles import write_obj, write_ply, write_stl
 
 from scenarios import CONFIGS
 
@@ -284,7 +284,7 @@ def test_meshes_folder_is_reproducible(tmp_path, monkeypatch):
     """configs/meshes/generate.py rewrites the checked-in meshes (same triangles, same numbers)."""
     import importlib.util
 
-    from stereopose_mc.config.meshio import read_mesh
+    from stereopose_mc.config.meshfiles import read_mesh
 
     spec = importlib.util.spec_from_file_location("gen", MESHES / "generate.py")
     gen = importlib.util.module_from_spec(spec)

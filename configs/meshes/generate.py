@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from stereopose_mc.core import mesh as M
-from stereopose_mc.config.meshio import write_obj, write_ply, write_stl
+from stereopose_mc.config.meshfiles import write_obj, write_ply, write_stl
 
 HERE = Path(__file__).resolve().parent
 

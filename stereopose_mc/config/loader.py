@@ -465,7 +465,7 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
 
 def _mesh_file(scenario: Scenario, file: str) -> tuple[Scenario, str]:
     """The scenario with ``target.shape.file`` made absolute (from the scenario file's folder), or a problem."""
-    from .meshio import MeshFileError, read_mesh
+    from .meshfiles import MeshFileError, read_mesh
 
     shape = scenario.target.shape
     p = Path(shape.file).expanduser()

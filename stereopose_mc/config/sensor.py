@@ -112,7 +112,7 @@ def shape_of(s: Scenario) -> shapes.Shape | None:
         return shapes.box(np.asarray(c.size_m, dtype=float))
     if c.type == "ellipsoid":
         return shapes.ellipsoid(np.asarray(c.semi_axes_m, dtype=float))
-    from .meshio import read_mesh
+    from .meshfiles import read_mesh
 
     m = read_mesh(Path(c.file))
     return shapes.mesh(m.vertices, m.faces)

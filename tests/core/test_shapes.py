@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stereopose_mc.core import shapes
-from stereopose_mc.config.meshio import read_mesh
+from stereopose_mc.config.meshfiles import read_mesh
 from scenarios import CONFIGS
 
 BOX = shapes.box([2.0, 4.0, 6.0])  # half-sizes 1, 2, 3

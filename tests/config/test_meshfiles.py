@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from stereopose_mc.core import mesh as M
-from stereopose_mc.config.meshio import MeshFileError, read_mesh, write_obj, write_ply, write_stl
+from stereopose_mc.config.meshfiles import MeshFileError, read_mesh, write_obj, write_ply, write_stl
 
 # unit cube [0, 1]^3 as 8 vertices and 6 outward quads (counter-clockwise seen from outside)
 CUBE_V = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1), (0, 1, 1)]
