@@ -33,7 +33,6 @@ from typing import Callable
 
 import numpy as np
 import pandas as pd
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from scipy.stats import chi2
 
@@ -41,11 +40,10 @@ from ..filters.registry import thesis_role
 from ..rundir import store
 from ..rundir.percentiles import percentile_table, percentiles_markdown
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
+from ..studies.figure_files import save_figure
 
-DPI = 150
 PANEL_SHAPE = (2, 3)
 CENTRAL_BANDS = ((70.0, "#9ecae1"), (90.0, "#deebf7"))  # (coverage %, colour), drawn widest first
-SVG_RC = {"svg.hashsalt": "stereopose_mc", "svg.fonttype": "path"}
 
 
 @dataclass(frozen=True)
@@ -71,25 +69,6 @@ class FigureSet:
 def safe_name(label: str) -> str:
     """A filter label made safe for a file name."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", str(label)) or "_"
-
-
-def save_figure(fig: Figure, out_dir: Path, stem: str) -> tuple[Path, Path]:
-    """Save ``fig`` as ``stem.png`` (150 dpi) and ``stem.svg``, each written atomically."""
-    import io
-
-    import matplotlib
-
-    FigureCanvasAgg(fig)
-    paths = []
-    for ext in ("png", "svg"):
-        buf = io.BytesIO()
-        with matplotlib.rc_context(SVG_RC):
-            meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
-            fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
-        path = out_dir / f"{stem}.{ext}"
-        store.atomic_write_bytes(path, buf.getvalue())
-        paths.append(path)
-    return paths[0], paths[1]
 
 
 def _panels(title: str) -> tuple[Figure, np.ndarray]:

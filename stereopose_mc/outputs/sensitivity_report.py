@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 from ..config.schema import Scenario
 from ..rundir.tables import ERROR_LABELS
 from ..studies import sensitivity as sens
+from ..studies.figure_files import save_figure
 from . import figures as figs
 from ..rundir import store
 
@@ -114,14 +115,14 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
         body.append(html_table(["metric", "rank", "parameter", "rho / r", "95 % CI", "p", "n", "significant"], rows,
                                left=3, caption=f"{label}: the three strongest drivers of each metric"))  # fmt: skip
         stem = f"sensitivity-heatmap-{figs.safe_name(label)}"
-        png, svg = figs.save_figure(heatmap(res.table, label, params), out_dir, stem)
+        png, svg = save_figure(heatmap(res.table, label, params), out_dir, stem)
         fig_files.append(figs.FigureFile(stem, f"{label}: correlation of every dispersed scalar with every metric",
                                          "Spearman rho of the converged trials' mean errors; rank-biserial r for "
                                          "divergence.", png, svg))  # fmt: skip
         sc = scatter_top(trials, res.table, label)
         if sc is not None:
             stem = f"sensitivity-scatter-{figs.safe_name(label)}"
-            png, svg = figs.save_figure(sc, out_dir, stem)
+            png, svg = save_figure(sc, out_dir, stem)
             fig_files.append(figs.FigureFile(stem, f"{label}: scatter plots of the top drivers",
                                              "The six (metric, scalar) pairs with the largest |rho|.", png, svg))
     if res.sobol is not None:

@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 from ..rundir import store
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from ..studies import sweep as sw
+from ..studies.figure_files import save_figure
 from . import figures as figs
 
 
@@ -100,7 +101,7 @@ def build_sweep_report(out: Path) -> Path:
     for label, k in ((lab, k) for lab in dict.fromkeys(summary["filter"]) for k in range(n_axes)):
         x_path = spec["axes"][k]["path"]
         stem = f"sweep-{figs.safe_name(label)}-{figs.safe_name(x_path)}"
-        png, svg = figs.save_figure(sweep_figure(summary, spec, label, k), fig_dir, stem)
+        png, svg = save_figure(sweep_figure(summary, spec, label, k), fig_dir, stem)
         body.append(_figure_html(figs.FigureFile(stem, f"{label} against {x_path}",
                                                  "Lines: medians; bands: 10-90 % of the converged trials; "
                                                  "bottom right: share of diverged trials.", png, svg), out))  # fmt: skip

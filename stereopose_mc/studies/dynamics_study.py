@@ -34,7 +34,6 @@ format: study, case, quantity, value, unit), ``timing.csv`` (wide), ``dynamics.m
 
 from __future__ import annotations
 
-import io
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -53,9 +52,9 @@ from ..core.orbit import Orbit, leader_kinematics
 from ..rundir import store
 from . import coupled as cp
 from .cw import cw_intercept_velocity, cw_propagate
+from .figure_files import save_figure
 
 Array = NDArray[np.float64]
-DPI = 150
 TIMING_POINTS = (1, 5, 10, 20, 50, 100)
 
 
@@ -438,22 +437,6 @@ def markdown_report(r: DynamicsResult, summary: pd.DataFrame, command: str | Non
     return "\n".join(parts)
 
 
-def _save(fig, out: Path, stem: str) -> list[Path]:
-    """Save ``fig`` as ``stem.png`` (150 dpi) and ``stem.svg`` (no date: reproducible)."""
-    import matplotlib
-
-    paths = []
-    for ext in ("png", "svg"):
-        buf = io.BytesIO()
-        with matplotlib.rc_context({"svg.hashsalt": "stereopose_mc"}):
-            meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
-            fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
-        p = out / f"{stem}.{ext}"
-        store.atomic_write_bytes(p, buf.getvalue())
-        paths.append(p)
-    return paths
-
-
 def make_figures(r: DynamicsResult, out: Path) -> list[Path]:
     """Draw and save the figures of the three studies; returns the written files."""
     import matplotlib
@@ -465,7 +448,7 @@ def make_figures(r: DynamicsResult, out: Path) -> list[Path]:
     comp = ("x", "y", "z")
 
     def done(fig, stem: str) -> None:
-        files.extend(_save(fig, out, stem))
+        files.extend(save_figure(fig, out, stem))
         plt.close(fig)
 
     # (a) figs 2.5-2.6: components and difference, circular and eccentric

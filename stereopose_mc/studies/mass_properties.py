@@ -1,6 +1,6 @@
 """Mass properties of a closed triangle mesh (``spmc inertia``, thesis ch. 7.4), as JSON-ready dicts.
 
-Numerics in ``core/mesh.py``, file formats in ``config/meshio.py``; this module reads,
+Numerics in ``core/mesh.py``, file formats in ``config/meshfiles.py``; this module reads,
 checks, optionally repairs, computes in SI and can write a scenario whose
 ``target.inertia_kgm2`` holds the principal moments.
 """
@@ -24,7 +24,7 @@ def mesh_mass_properties(
     the dict then holds only what was read and repaired).
     """
     from ..core import mesh as M
-    from ..config.meshio import MeshFileError, read_mesh
+    from ..config.meshfiles import MeshFileError, read_mesh
 
     try:
         data = read_mesh(path)

@@ -28,6 +28,7 @@ from ..core import dynamics, state as st
 from ..core import quaternion as qt
 from ..rundir import store
 from ..sim.truth import Truth, simulate_truth
+from .figure_files import save_figure
 
 Array = NDArray[np.float64]
 RAD2DEG = 180.0 / np.pi
@@ -123,8 +124,6 @@ def figure(ms: list[Mismatch], out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .dynamics_study import _save
-
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
     for m in ms:
         ax[0].plot(m.t, m.drift_rho, label=m.effect)
@@ -134,7 +133,7 @@ def figure(ms: list[Mismatch], out: Path) -> list[Path]:
     for a in ax:
         a.grid(alpha=0.3)
         a.legend()
-    paths = _save(fig, out, "truth_mismatch")
+    paths = list(save_figure(fig, out, "truth_mismatch"))
     plt.close(fig)
     return paths
 
