@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import statistics
 import sys
 import time
@@ -310,3 +311,141 @@ def write_outputs(rows: list[Row], meta: dict, out_dir: Path, stem: str) -> tupl
                        for r in rows]  # fmt: skip
     json_path.write_text(json.dumps(payload, indent=2, default=str) + "\n")
     return csv_path, json_path
+
+
+# ----------------------------------------------------------------------------- shared by the sections
+
+
+def spmc_command() -> list[str]:
+    """``spmc`` next to the running interpreter (the venv's console script), else ``python -m``."""
+    exe = Path(sys.executable).parent / "spmc"
+    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "stereopose_mc.cli.main"]
+
+
+def subprocess_env(cfg: BenchConfig) -> dict[str, str]:
+    env = dict(os.environ)
+    if cfg.blas_threads:
+        for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            env[k] = str(cfg.blas_threads)
+    return env
+
+
+def run_counts(run_dir: Path, steps: int) -> tuple[int, int, int]:
+    """(diverged, rows, trial-steps computed) of a finished run directory; one row per trial and filter."""
+    import pandas as pd
+
+    t = pd.read_parquet(run_dir / "trials.parquet", columns=["diverged", "diverged_step"])
+    return int(t["diverged"].sum()), len(t), active_trial_steps(t["diverged_step"].to_numpy(), steps)
+
+
+def steps_of(d: dict) -> int:
+    from stereopose_mc.config.schema import Scenario
+
+    tm = Scenario.model_validate(d).time
+    return int(round(tm.duration_s / tm.dt_s))
+
+
+def engine_wall(run_dir: Path) -> float:
+    m = json.loads((run_dir / "manifest.json").read_text())
+    return float(m.get("wall_s_last_session", float("nan")))
+
+
+def healthy(x: np.ndarray, P: np.ndarray, e: np.ndarray, bounds) -> bool:
+    """The engine's divergence test for one trial: finite, P positive definite, errors in bounds."""
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        return False
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return False
+    lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
+    return not bool((e > lim).any())
+
+
+def draws(prep: Prepared, trials: np.ndarray):
+    """Noisy measurements and initial estimates of ``trials``, exactly as ``run_chunk`` draws them."""
+    from stereopose_mc.sim import measurements as meas
+
+    s = prep.setup
+    draws = meas.draw_trials(prep.scenario.seed, trials, s.x0.size, s.steps, s.n_points)
+    return meas.noisy(s, prep.exact, draws), meas.initial_estimates(s, draws)
+
+
+def active_trial_steps(div_step: np.ndarray, K: int) -> int:
+    """Trial-steps a run actually computed (a diverged trial stops after its divergence step)."""
+    return int(np.where(div_step < 0, K, div_step).sum())
+
+
+def single_trial_path(prep: Prepared, fs, trial: int):
+    """Posteriors ``[(x, P)]_k`` and step measurements of one trial run with ``B = 1``; and health."""
+    from stereopose_mc.filters import estimators, relnav
+    from stereopose_mc.mc.trial import errors
+
+    s, truth = prep.setup, prep.truth
+    noisy, x0 = draws(prep, np.array([trial]))
+    x, P = x0, estimators.initial_covariance(x0, np.diag(s.P0_diag)[None], fs)
+    rows = np.arange(1)
+    posts, steps, iters = [(x, P)], [None], []
+    ok = True
+    for k in range(1, s.steps + 1):
+        vis = prep.exact.visible[k]
+        step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, k], vis, s.pseudo), alpha=noisy.alpha[:, k],
+                                      visible=vis, t=truth.t[k])  # fmt: skip
+        with np.errstate(all="ignore"):
+            xa, Pa = estimators.predict(x, P, truth.t[k - 1], fs, s)
+            try:
+                u = estimators.update(xa, Pa, step, rows, fs, s)
+            except np.linalg.LinAlgError:
+                return posts, steps, iters, False
+        x, P = u.x, u.P
+        posts.append((x, P))
+        steps.append(step)
+        iters.append(int(u.iterations[0]))
+        ok = ok and healthy(x[0], P[0], errors(x[0], truth.x[k]), prep.bounds)
+        if not ok:
+            break
+    return posts, steps, iters, ok
+
+
+def step_latencies(sf, prep: Prepared, fs, posts, steps, k0: int, k1: int, reps: int) -> tuple[list, list]:
+    """Wall times of ``sf.predict`` and ``sf.update`` (``B = 1``) from the recorded posteriors, steps ``k0..k1``."""
+    one = np.arange(1)
+    s = prep.setup
+
+    def step_once(k: int) -> tuple[float, float]:
+        x, P = posts[k - 1]
+        t0 = time.perf_counter()
+        xa, Pa = sf.predict(x, P, prep.truth.t[k - 1], fs, s)
+        t1 = time.perf_counter()
+        sf.update(xa, Pa, steps[k], one, fs, s)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1
+
+    for k in range(k0, min(k0 + 5, k1) + 1):  # warm-up
+        step_once(k)
+    pred, upd = [], []
+    for _ in range(reps):
+        for k in range(k0, k1 + 1):
+            a, b = step_once(k)
+            pred.append(a)
+            upd.append(b)
+    return pred, upd
+
+
+def scaling_scenario(cfg: BenchConfig, kind: str, n_points: int) -> dict:
+    """Case copy with ``n_points`` points on a sphere, ``cfg.scaling_steps`` steps, one filter."""
+    d = single_filter(scenario_dict(cfg), kind)
+    d["target"] = dict(d["target"], feature_points_m=sphere_points(n_points, cfg.sphere_radius_m).tolist())
+    dt = float(d.get("time", {}).get("dt_s", 1.0))
+    d["time"] = {"dt_s": dt, "duration_s": cfg.scaling_steps * dt, "error_window_start_s": 0.0}
+    return d
+
+
+def first_healthy_path(prep: Prepared, fs, candidates: int):
+    """``(trial, posteriors, steps, iterations)`` of the first of trials ``0..candidates-1`` that stays
+    healthy with ``B = 1`` (:func:`single_trial_path`), or None when every one diverged."""
+    for j in range(candidates):
+        posts, stp, iters, ok = single_trial_path(prep, fs, j)
+        if ok:
+            return j, posts, stp, iters
+    return None

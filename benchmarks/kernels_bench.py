@@ -23,7 +23,28 @@ from typing import Any
 
 import numpy as np
 
-from .common import BenchConfig, Row, blas_limit, fit_exponent, judge, log, prepare, scenario_dict, timed, write_yaml
+from .common import (
+    active_trial_steps,
+    BenchConfig,
+    blas_limit,
+    draws,
+    engine_wall,
+    first_healthy_path,
+    fit_exponent,
+    judge,
+    log,
+    prepare,
+    Row,
+    run_counts,
+    scaling_scenario,
+    scenario_dict,
+    spmc_command,
+    step_latencies,
+    steps_of,
+    subprocess_env,
+    timed,
+    write_yaml,
+)
 
 KERNELS = ("numpy", "compiled")
 TARGET_E2E_S = 5.0  # 1,000 trials, both filters, --jobs 2, warm
@@ -34,8 +55,6 @@ TARGET_UPDATE_EXPONENT = 1.5
 
 
 def _spmc(args: list[str], env=None) -> tuple[float, subprocess.CompletedProcess]:
-    from .sections import spmc_command
-
     t0 = time.perf_counter()
     r = subprocess.run(spmc_command() + args, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
@@ -79,8 +98,6 @@ def ensure_bytecode() -> str:
 
 def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     """End-to-end campaign (both filters), cold and warm, and start-up, per kernels."""
-    from .sections import _engine_wall, _run_counts, _steps_of, subprocess_env
-
     bytecode = ensure_bytecode()
     log(f"e2e: {bytecode}")
     rows: list[Row] = []
@@ -108,9 +125,9 @@ def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
                 w, _ = _spmc(["run", str(scn), "--trials", str(T), "--jobs", str(J), "--out", str(out), "--overwrite",
                               "--quiet", "--no-report", "--kernels", kernels], env)  # fmt: skip
                 walls.append(w)
-                engines.append(_engine_wall(out))
+                engines.append(engine_wall(out))
             wall = float(np.median(walls))
-            ndiv, ntr, _ = _run_counts(out, _steps_of(d))
+            ndiv, ntr, _ = run_counts(out, steps_of(d))
             note = f"engine {float(np.median(engines)):.2f} s; {ndiv}/{ntr} (trial, filter) runs diverged; {bytecode}"
             if reps > 1:
                 note = f"median of {reps} ({', '.join(f'{w:.2f}' for w in walls)} s); " + note
@@ -150,9 +167,7 @@ def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
 def _run_filter(prep, fs, trials, kernels):
     from stereopose_mc.mc.trial import run_filter
 
-    from .sections import _draws
-
-    noisy, x0 = _draws(prep, trials)
+    noisy, x0 = draws(prep, trials)
     s = prep.setup
 
     def go():
@@ -172,8 +187,6 @@ def steps(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
 def _latency(cfg: BenchConfig) -> list[Row]:
     from stereopose_mc.mc.trial import step_functions
 
-    from .sections import _single_trial_path, step_latencies
-
     rows: list[Row] = []
     prep = prepare(scenario_dict(cfg))
     s = prep.setup
@@ -181,12 +194,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     k0, k1 = max(1, min(cfg.latency_steps[0], K)), min(cfg.latency_steps[1], K)
     for kind in cfg.filters:
         fs = prep.filter(kind)
-        path = None
-        for j in range(cfg.latency_candidates):
-            posts, stp, iters, ok = _single_trial_path(prep, fs, j)
-            if ok:
-                path = (j, posts, stp, iters)
-                break
+        path = first_healthy_path(prep, fs, cfg.latency_candidates)
         if path is None:
             continue
         j, posts, stp, iters = path
@@ -207,8 +215,6 @@ def _latency(cfg: BenchConfig) -> list[Row]:
 
 
 def _throughput(cfg: BenchConfig) -> list[Row]:
-    from .sections import _active_trial_steps
-
     rows: list[Row] = []
     prep = prepare(scenario_dict(cfg))
     K = prep.setup.steps
@@ -220,7 +226,7 @@ def _throughput(cfg: BenchConfig) -> list[Row]:
                 go = _run_filter(prep, fs, np.arange(B), kernels)
                 go()  # warm-up
                 tm = timed(go, cfg.repeats, cfg.cheap_s)
-                n = _active_trial_steps(tm.result.diverged_step, K)
+                n = active_trial_steps(tm.result.diverged_step, K)
                 rate[kernels] = n / tm.median_s
                 rows.append(Row("steps", kind, f"throughput B={B}, {kernels}", rate[kernels], "trial-steps/s",
                                 note=f"run_filter in-process, {B} trials x {K} steps, median of {tm.n}; "
@@ -238,8 +244,6 @@ def _features(cfg: BenchConfig) -> list[Row]:
     minutes, which timing each size in its own minute turned into +-0.15 on the exponent."""
     from stereopose_mc.mc.trial import step_functions
 
-    from .sections import scaling_scenario
-
     rows: list[Row] = []
     trials = np.arange(cfg.scaling_batch)
     for kind in cfg.filters:
@@ -249,10 +253,9 @@ def _features(cfg: BenchConfig) -> list[Row]:
         for N in cfg.feature_points:
             prep = prepare(scaling_scenario(cfg, kind, N))
             fs, s = prep.filter(kind), prep.setup
-            from .sections import _draws
             from stereopose_mc.filters import estimators, relnav
 
-            noisy, x0 = _draws(prep, trials)
+            noisy, x0 = draws(prep, trials)
             vis = prep.exact.visible[1]
             step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo),
                                           alpha=noisy.alpha[:, 1], visible=vis, t=prep.truth.t[1])  # fmt: skip
@@ -296,14 +299,12 @@ def _filterpy(cfg: BenchConfig) -> list[Row]:
     step in six runs of one stop on the same code, ours 25.7-26.4 us), so two times taken minutes apart carry that
     drift into their ratio. The other rows (numpy, ``B = baseline_trials``) are timed after, as before."""
     from .filterpy_baseline import run_trials
-    from .sections import _active_trial_steps, _draws
-
     prep = prepare(scenario_dict(cfg))
     s = prep.setup
     fs = prep.full_state_filter("ekf")
     T = cfg.baseline_trials
     trials = np.arange(T)
-    noisy, x0 = _draws(prep, trials)
+    noisy, x0 = draws(prep, trials)
     K = s.steps
     judged_batch = max(T, cfg.baseline_batch)
     judged = _run_filter(prep, fs, np.arange(judged_batch), "compiled")
@@ -323,16 +324,16 @@ def _filterpy(cfg: BenchConfig) -> list[Row]:
     for batch in sorted({T, judged_batch}):
         for kernels in KERNELS:
             if batch == judged_batch and kernels == "compiled":
-                sps = _active_trial_steps(tm.result.diverged_step, K) / statistics.median(ours_s)
+                sps = active_trial_steps(tm.result.diverged_step, K) / statistics.median(ours_s)
                 tgt, st = f">= {TARGET_FILTERPY_X:g}x", judge(sps / fp_sps, TARGET_FILTERPY_X, "min")
-                per = [t / _active_trial_steps(tm.result.diverged_step, K) * 1e6 for t in ours_s]
+                per = [t / active_trial_steps(tm.result.diverged_step, K) * 1e6 for t in ours_s]
                 how = (f", median of {len(ours_s)} runs ({min(per):.3g}-{max(per):.3g} us) in the {len(fp_s)} rounds "
                        f"alternated with FilterPy's")  # fmt: skip
             else:
                 go = _run_filter(prep, fs, np.arange(batch), kernels)
                 go()
                 tm_o = timed(go, cfg.repeats, cfg.cheap_s)
-                sps = _active_trial_steps(tm_o.result.diverged_step, K) / tm_o.median_s
+                sps = active_trial_steps(tm_o.result.diverged_step, K) / tm_o.median_s
                 tgt, st, how = "", "", ""
             what = f"the same {T} trials as one batch" if batch == T else \
                 f"{batch} trials as one batch (an engine chunk; the first {T} are FilterPy's)"  # fmt: skip
@@ -357,8 +358,6 @@ def _split(prep, fs, trials, kernels) -> dict[str, float]:
     import types
 
     from stereopose_mc.mc import trial
-
-    from .sections import _active_trial_steps
 
     go = _run_filter(prep, fs, trials, kernels)
     go()
@@ -389,7 +388,7 @@ def _split(prep, fs, trials, kernels) -> dict[str, float]:
         total = time.perf_counter() - t0
     finally:
         trial.step_functions, trial.nees_and_pd, trial._robust_update = saved
-    n = _active_trial_steps(r.diverged_step, prep.setup.steps)
+    n = active_trial_steps(r.diverged_step, prep.setup.steps)
     out = {k: v / n * 1e6 for k, v in spent.items()}
     out["rest"] = total / n * 1e6 - sum(out.values())
     return out

@@ -7,10 +7,7 @@ Every section benchmarks each filter type in ``cfg.filters`` of the scenario on 
 
 from __future__ import annotations
 
-import json
-import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -19,18 +16,26 @@ import numpy as np
 
 from . import kernels_bench
 from .common import (
+    active_trial_steps,
     BenchConfig,
     blas_limit,
-    Prepared,
-    Row,
+    draws,
+    engine_wall,
+    first_healthy_path,
     fit_exponent,
     judge,
     log,
     percentile,
     prepare,
+    Row,
+    run_counts,
+    scaling_scenario,
     scenario_dict,
     single_filter,
-    sphere_points,
+    spmc_command,
+    step_latencies,
+    steps_of,
+    subprocess_env,
     timed,
     write_yaml,
 )
@@ -44,20 +49,6 @@ TARGET_EXPONENT = 2.0  # time per step ~ N^p
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def spmc_command() -> list[str]:
-    """``spmc`` next to the running interpreter (the venv's console script), else ``python -m``."""
-    exe = Path(sys.executable).parent / "spmc"
-    return [str(exe)] if exe.is_file() else [sys.executable, "-m", "stereopose_mc.cli.main"]
-
-
-def subprocess_env(cfg: BenchConfig) -> dict[str, str]:
-    env = dict(os.environ)
-    if cfg.blas_threads:
-        for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            env[k] = str(cfg.blas_threads)
-    return env
 
 
 def spmc_run_args(scenario: Path, out: Path, trials: int, jobs: int, timeseries: str,
@@ -74,52 +65,6 @@ def _check_proc(cmd: list[str], code: int, stderr: str) -> None:
         raise RuntimeError(f"command failed with exit code {code}: {' '.join(cmd)}\n{tail}")
 
 
-def _run_counts(run_dir: Path, steps: int) -> tuple[int, int, int]:
-    """(diverged, rows, trial-steps computed) of a finished run directory; one row per trial and filter."""
-    import pandas as pd
-
-    t = pd.read_parquet(run_dir / "trials.parquet", columns=["diverged", "diverged_step"])
-    return int(t["diverged"].sum()), len(t), _active_trial_steps(t["diverged_step"].to_numpy(), steps)
-
-
-def _steps_of(d: dict) -> int:
-    from stereopose_mc.config.schema import Scenario
-
-    tm = Scenario.model_validate(d).time
-    return int(round(tm.duration_s / tm.dt_s))
-
-
-def _engine_wall(run_dir: Path) -> float:
-    m = json.loads((run_dir / "manifest.json").read_text())
-    return float(m.get("wall_s_last_session", float("nan")))
-
-
-def healthy(x: np.ndarray, P: np.ndarray, e: np.ndarray, bounds) -> bool:
-    """The engine's divergence test for one trial: finite, P positive definite, errors in bounds."""
-    if not (np.isfinite(x).all() and np.isfinite(P).all()):
-        return False
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        return False
-    lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
-    return not bool((e > lim).any())
-
-
-def _draws(prep: Prepared, trials: np.ndarray):
-    """Noisy measurements and initial estimates of ``trials``, exactly as ``run_chunk`` draws them."""
-    from stereopose_mc.sim import measurements as meas
-
-    s = prep.setup
-    draws = meas.draw_trials(prep.scenario.seed, trials, s.x0.size, s.steps, s.n_points)
-    return meas.noisy(s, prep.exact, draws), meas.initial_estimates(s, draws)
-
-
-def _active_trial_steps(div_step: np.ndarray, K: int) -> int:
-    """Trial-steps a run actually computed (a diverged trial stops after its divergence step)."""
-    return int(np.where(div_step < 0, K, div_step).sum())
-
-
 # ----------------------------------------------------------------------------- campaign
 
 
@@ -130,7 +75,7 @@ def campaign(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     T = cfg.campaign_trials
     reduced = T != cfg.target_trials
     env = subprocess_env(cfg)
-    K = _steps_of(base)
+    K = steps_of(base)
     for kind in cfg.filters:
         scn = write_yaml(tmp / f"campaign-{kind}.yaml", single_filter(base, kind))
         walls: dict[int, float] = {}
@@ -143,8 +88,8 @@ def campaign(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             wall = time.perf_counter() - t0
             _check_proc(cmd, r.returncode, r.stderr)
             walls[jobs] = wall
-            ndiv, ntr, tsteps = _run_counts(out, K)
-            eng = _engine_wall(out)
+            ndiv, ntr, tsteps = run_counts(out, K)
+            eng = engine_wall(out)
             rates = {"trials_per_s": T / wall, "trial_steps_per_s": tsteps / wall}
             ctx.setdefault("campaign", {})[(kind, jobs)] = rates
             target, status, note = "", "", ""
@@ -212,62 +157,6 @@ def chunk_cost(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
 # ----------------------------------------------------------------------------- latency
 
 
-def _single_trial_path(prep: Prepared, fs, trial: int):
-    """Posteriors ``[(x, P)]_k`` and step measurements of one trial run with ``B = 1``; and health."""
-    from stereopose_mc.filters import estimators, relnav
-    from stereopose_mc.mc.trial import errors
-
-    s, truth = prep.setup, prep.truth
-    noisy, x0 = _draws(prep, np.array([trial]))
-    x, P = x0, estimators.initial_covariance(x0, np.diag(s.P0_diag)[None], fs)
-    rows = np.arange(1)
-    posts, steps, iters = [(x, P)], [None], []
-    ok = True
-    for k in range(1, s.steps + 1):
-        vis = prep.exact.visible[k]
-        step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, k], vis, s.pseudo), alpha=noisy.alpha[:, k],
-                                      visible=vis, t=truth.t[k])  # fmt: skip
-        with np.errstate(all="ignore"):
-            xa, Pa = estimators.predict(x, P, truth.t[k - 1], fs, s)
-            try:
-                u = estimators.update(xa, Pa, step, rows, fs, s)
-            except np.linalg.LinAlgError:
-                return posts, steps, iters, False
-        x, P = u.x, u.P
-        posts.append((x, P))
-        steps.append(step)
-        iters.append(int(u.iterations[0]))
-        ok = ok and healthy(x[0], P[0], errors(x[0], truth.x[k]), prep.bounds)
-        if not ok:
-            break
-    return posts, steps, iters, ok
-
-
-def step_latencies(sf, prep: Prepared, fs, posts, steps, k0: int, k1: int, reps: int) -> tuple[list, list]:
-    """Wall times of ``sf.predict`` and ``sf.update`` (``B = 1``) from the recorded posteriors, steps ``k0..k1``."""
-    one = np.arange(1)
-    s = prep.setup
-
-    def step_once(k: int) -> tuple[float, float]:
-        x, P = posts[k - 1]
-        t0 = time.perf_counter()
-        xa, Pa = sf.predict(x, P, prep.truth.t[k - 1], fs, s)
-        t1 = time.perf_counter()
-        sf.update(xa, Pa, steps[k], one, fs, s)
-        t2 = time.perf_counter()
-        return t1 - t0, t2 - t1
-
-    for k in range(k0, min(k0 + 5, k1) + 1):  # warm-up
-        step_once(k)
-    pred, upd = [], []
-    for _ in range(reps):
-        for k in range(k0, k1 + 1):
-            a, b = step_once(k)
-            pred.append(a)
-            upd.append(b)
-    return pred, upd
-
-
 def latency(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     """Wall time of one ``estimators.predict`` + ``estimators.update`` with ``B = 1``, after convergence."""
     with blas_limit(cfg.inproc_threads):
@@ -285,16 +174,12 @@ def _latency(cfg: BenchConfig) -> list[Row]:
     N = s.n_points
     for kind in cfg.filters:
         fs = prep.filter(kind)
-        trial = None
-        for j in range(cfg.latency_candidates):
-            posts, steps, iters, ok = _single_trial_path(prep, fs, j)
-            if ok:
-                trial = j
-                break
-        if trial is None:
+        path = first_healthy_path(prep, fs, cfg.latency_candidates)
+        if path is None:
             rows.append(Row("latency", kind, "step latency", float("nan"), "ms",
                             note=f"every one of trials 0-{cfg.latency_candidates - 1} diverged"))  # fmt: skip
             continue
+        trial, posts, steps, iters = path
         log(f"latency: {kind}, trial {trial}, steps {k0}-{k1}, {cfg.latency_reps} repeats")
         pred, upd = step_latencies(estimators, prep, fs, posts, steps, k0, k1, cfg.latency_reps)
         tot = np.add(pred, upd)
@@ -313,15 +198,6 @@ def _latency(cfg: BenchConfig) -> list[Row]:
 # ----------------------------------------------------------------------------- scaling
 
 
-def scaling_scenario(cfg: BenchConfig, kind: str, n_points: int) -> dict:
-    """Case copy with ``n_points`` points on a sphere, ``cfg.scaling_steps`` steps, one filter."""
-    d = single_filter(scenario_dict(cfg), kind)
-    d["target"] = dict(d["target"], feature_points_m=sphere_points(n_points, cfg.sphere_radius_m).tolist())
-    dt = float(d.get("time", {}).get("dt_s", 1.0))
-    d["time"] = {"dt_s": dt, "duration_s": cfg.scaling_steps * dt, "error_window_start_s": 0.0}
-    return d
-
-
 def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     """Time per filter step of a batch vs the number of feature points; fitted exponent."""
     from stereopose_mc.mc.trial import run_filter
@@ -336,7 +212,7 @@ def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
                 raise RuntimeError(f"scaling: with N={N} points on a {cfg.sphere_radius_m} m sphere some are not "
                                    "visible; the measurement size would vary")  # fmt: skip
             fs, s = prep.filter(kind), prep.setup
-            noisy, x0 = _draws(prep, trials)
+            noisy, x0 = draws(prep, trials)
             log(f"scaling: {kind}, N={N}, batch {trials.size}, {s.steps} steps")
 
             def go():
@@ -351,7 +227,7 @@ def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             ndiv = int((r.diverged_step >= 0).sum())
             its = r.iterations[:, 1:][r.iterations[:, 1:] > 0]
             n, m = s.x0.size, 8 * N + (3 if s.pseudo else 0) + (N if s.disparity else 0)
-            per_ts = tm.median_s / max(1, _active_trial_steps(r.diverged_step, K))
+            per_ts = tm.median_s / max(1, active_trial_steps(r.diverged_step, K))
             rows.append(Row("scaling", kind, f"time per step, N={N} (n={n}, m={m}), batch {trials.size}",
                             1e3 * per_step[N], "ms/step",
                             note=f"steps 1-{K}, median of {tm.n}; {1e6 * per_ts:.0f} us per trial-step; "
@@ -389,7 +265,7 @@ def memory(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     log(f"memory: {T} trials, --jobs {J}, --timeseries summary, --kernels {cfg.memory_kernels}, filters {label}")
     pm = run_and_measure(cmd, cfg.memory_interval_s, env=subprocess_env(cfg))
     _check_proc(cmd, pm.returncode, pm.stderr)
-    ndiv, ntr, _ = _run_counts(out, _steps_of(d))
+    ndiv, ntr, _ = run_counts(out, steps_of(d))
     if not cfg.keep_runs:
         _rmtree(out)
     reduced = T != cfg.memory_target_trials
@@ -429,7 +305,7 @@ def baseline(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     fs = prep.full_state_filter("ekf")
     T = cfg.baseline_trials
     trials = np.arange(T)
-    noisy, x0 = _draws(prep, trials)
+    noisy, x0 = draws(prep, trials)
     K = s.steps
     log(f"baseline: FilterPy EKF, {T} trials x {K} steps")
     with np.errstate(all="ignore"), blas_limit(cfg.inproc_threads):
@@ -438,7 +314,7 @@ def baseline(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
         ours = timed(lambda: run_filter(x0, s, prep.truth, noisy.y, noisy.alpha, prep.exact.visible, fs, prep.bounds),
                      cfg.repeats, cfg.cheap_s)  # fmt: skip
     b, o = fp.result, ours.result
-    fp_steps, our_steps = b.steps_run, _active_trial_steps(o.diverged_step, K)
+    fp_steps, our_steps = b.steps_run, active_trial_steps(o.diverged_step, K)
     fp_sps, our_sps = fp_steps / fp.median_s, our_steps / ours.median_s
     ndiv_o, nstop = int((o.diverged_step >= 0).sum()), int((b.stopped_step >= 0).sum())
     rows.append(Row("baseline", "ekf", "FilterPy ExtendedKalmanFilter, per-trial loop: throughput", T / fp.median_s,

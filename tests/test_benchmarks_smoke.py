@@ -136,7 +136,7 @@ def test_filterpy_step_equals_ours_from_the_same_inputs(cfg):
     prep = common.prepare(common.scenario_dict(cfg))
     # ours with the exact transition (the scenario's default is a Taylor series) to isolate the code
     s, fs = prep.setup, dataclasses.replace(prep.full_state_filter("ekf"), transition="expm")
-    noisy, x0 = sections._draws(prep, np.arange(1))
+    noisy, x0 = common.draws(prep, np.arange(1))
     P0 = np.diag(s.P0_diag)
     vis = prep.exact.visible[1]
     step = relnav.StepMeasurement(y=relnav.stack_measurement(noisy.y[:, 1], vis, s.pseudo), alpha=noisy.alpha[:, 1],
@@ -172,7 +172,7 @@ def test_filterpy_run_tracks_ours(cfg):
 
     prep = common.prepare(common.scenario_dict(cfg))
     fs = prep.full_state_filter("ekf")  # FilterPy's EKF is the full-state (additive) one
-    noisy, x0 = sections._draws(prep, np.arange(2))
+    noisy, x0 = common.draws(prep, np.arange(2))
     b = run_trials(x0, noisy.y, noisy.alpha, prep.exact.visible, prep.truth, prep.setup, fs)
     o = run_filter(x0, prep.setup, prep.truth, noisy.y, noisy.alpha, prep.exact.visible, fs, prep.bounds)
     assert b.steps_run == 2 * prep.setup.steps and (b.stopped_step < 0).all()
