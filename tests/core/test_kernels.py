@@ -169,7 +169,7 @@ def test_cholesky_on_the_transposed_layout(n):
     and a pair, two blocks and a row) equals numpy's factor of ``A`` (LAPACK's), or with ``rev`` of ``J A J``,
     reading only the lower triangle of ``A``; False on a matrix that is not positive definite (its first, middle or
     last pivot) or has a non-finite pivot."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import cholesky as kchol
 
     rng = np.random.default_rng(300 + n)
     M = rng.standard_normal((n, n))
@@ -177,25 +177,25 @@ def test_cholesky_on_the_transposed_layout(n):
     Alow = np.tril(A) + np.triu(np.full((n, n), np.nan), 1)  # the upper triangle must not be read
     for rev, ref in ((False, np.linalg.cholesky(A)), (True, np.linalg.cholesky(A[::-1, ::-1]))):
         L = np.full((n, n), np.nan)
-        assert ku._cholesky_t(Alow, L, rev)
+        assert kchol._cholesky_t(Alow, L, rev)
         np.testing.assert_allclose(L, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
         assert np.all(np.triu(L, 1) == 0.0)
     bad = Alow.copy()
     bad[n - 1, n - 1] = -1.0
-    assert not ku._cholesky_t(bad, L, False)
+    assert not kchol._cholesky_t(bad, L, False)
     bad[n - 1, n - 1] = np.nan
-    assert not ku._cholesky_t(bad, L, False)
+    assert not kchol._cholesky_t(bad, L, False)
     for k, v in ((0, np.inf), (0, 0.0), (n // 2, -1.0), (n // 2, np.nan)):
         bad = Alow.copy()
         bad[k, k] = v
-        assert not ku._cholesky_t(bad, L, False), (k, v)
+        assert not kchol._cholesky_t(bad, L, False), (k, v)
     # a singular matrix (rank n - 1 from its middle row on): its pivot there is round-off, not > 0 or not PD after
     if n >= 3:
         S = A.copy()
         m = n // 2
         S[m, :] = S[m - 1, :]
         S[:, m] = S[:, m - 1]
-        assert not ku._cholesky_t(S - 1e-9 * np.abs(A).max() * np.eye(n), L, False)
+        assert not kchol._cholesky_t(S - 1e-9 * np.abs(A).max() * np.eye(n), L, False)
     # _cholesky_tu: the same factor in place from the upper triangle (the lower one not read)
     from stereopose_mc.core.kernels import cholesky as kc
 
@@ -227,7 +227,7 @@ def test_reverse_factor_solve_and_posterior_covariance(n):
     triangular, times its transpose; blocked by 8 rows up to 32 columns, by 16 past them) equals ``L A^-1 L^T`` by numpy, is exactly symmetric,
     and leaves in ``W`` the square root ``J M^T`` of it, ``M`` its Cholesky factor; False on a matrix that is not
     positive definite."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import triangular as ktri
 
     rng = np.random.default_rng(200 + n)
     A1, A2 = rng.standard_normal((2, n, n))
@@ -235,16 +235,16 @@ def test_reverse_factor_solve_and_posterior_covariance(n):
     Alow = np.tril(A) + np.triu(np.full((n, n), np.nan), 1)  # the upper triangle must not be read
     L = np.linalg.cholesky(P)
     LA = np.full((n, n), np.nan)
-    assert ku._factor(Alow, LA)
+    assert ktri._factor(Alow, LA)
     U = LA[::-1, ::-1]
     assert np.all(np.tril(U, -1) == 0.0)
     np.testing.assert_allclose(U @ U.T, A, rtol=0, atol=1e-12 * np.abs(A).max())
     b = rng.standard_normal(n)
     x = b.copy()
-    ku._solve(LA, x)
+    ktri._solve(LA, x)
     np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10 * np.abs(b).max())
     out, W = np.full((n, n), np.nan), np.full((n, n), np.nan)
-    ku._posterior_covariance_rev(L, LA, out, W)
+    ktri._posterior_covariance_rev(L, LA, out, W)
     ref = L @ np.linalg.solve(A, L.T)
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(out, out.T)
@@ -253,7 +253,7 @@ def test_reverse_factor_solve_and_posterior_covariance(n):
     np.testing.assert_allclose(Mt.T, np.linalg.cholesky(ref), rtol=0, atol=1e-11 * np.abs(Mt).max())
     bad = A.copy()
     bad[0, 0] = -1.0
-    assert not ku._factor(bad, LA)
+    assert not ktri._factor(bad, LA)
 
 
 def _centering(N, n):
@@ -277,7 +277,7 @@ def test_centered_coordinates_of_the_aligned_chart(N):
     ``_uncenter_cov`` its inverse (exactly symmetric), ``_uncenter_vec_to`` is ``T^-1 v``; ``_centered_model_rows``
     gives ``H' = H_e T^-1`` with the last point's deviations through the virtual columns
     (``_centered_virtual_rows``: the sum of the other deviations' rows)."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import centred as kcen
 
     rng = np.random.default_rng(N)
     n = 12 + 3 * N + 2
@@ -289,7 +289,7 @@ def test_centered_coordinates_of_the_aligned_chart(N):
     G[12 : 12 + 3 * N, 12 : 12 + 3 * N] = 1e8 * np.kron(np.ones((N, N)), np.eye(3))  # a common error of 1e4
     P = Pd + G
     Pc, tmp = np.empty((n, n)), np.empty((n, n))
-    ku._center_cov(P, Pc, tmp, N)
+    kcen._center_cov(P, Pc, tmp, N)
     Tl = T.astype(np.longdouble)  # the reference in extended precision from P as stored (its 1e8 + ~1 entries)
     ref = (Tl @ P.astype(np.longdouble) @ Tl.T).astype(float)
     il = np.tril_indices(n)
@@ -300,18 +300,18 @@ def test_centered_coordinates_of_the_aligned_chart(N):
     np.testing.assert_allclose(Pc[il], ref[il], rtol=0, atol=1e-12 * np.abs(ref).max())
     back = np.full((n, n), np.nan)
     Pcs = np.tril(Pc) + np.tril(Pc, -1).T
-    ku._uncenter_cov(Pcs, back, tmp, N)
+    kcen._uncenter_cov(Pcs, back, tmp, N)
     np.testing.assert_allclose(back, Ti @ Pcs @ Ti.T, rtol=0, atol=1e-12 * np.abs(P).max())
     assert np.array_equal(back, back.T)
     v = rng.standard_normal(n)
     out = np.empty(n)
-    ku._uncenter_vec_to(T @ v, out, N)
+    kcen._uncenter_vec_to(T @ v, out, N)
     np.testing.assert_allclose(out, v, rtol=0, atol=1e-13)
     # H' = H_e T^-1 on aligned-chart rows (9 common columns, own point, 3 virtual = every point's sum)
     _, cols, Hval = _staircase_rows(rng, N, True, ())
     m = cols.shape[0]
     Hc, cc = np.zeros_like(Hval), np.zeros_like(cols)
-    ku._centered_model_rows(Hval, cols, Hc, cc, n, N)
+    kcen._centered_model_rows(Hval, cols, Hc, cc, n, N)
     He = np.zeros((m, n))
     Hp = np.zeros((m, n))
     S = np.zeros((3, n))  # the virtual columns of H': the sum of the deviations d_0 .. d_{N-2}
@@ -330,7 +330,7 @@ def test_centered_coordinates_of_the_aligned_chart(N):
                 Hp[r, c] += h
     np.testing.assert_allclose(Hp, He @ Ti, rtol=0, atol=1e-12 * np.abs(He).max())
     Laug = np.vstack([rng.standard_normal((n, n)), np.zeros((3, n))])
-    ku._centered_virtual_rows(Laug, N)
+    kcen._centered_virtual_rows(Laug, N)
     np.testing.assert_allclose(Laug[n:], S @ Laug[:n], rtol=1e-13, atol=1e-13)
 
 
@@ -385,7 +385,7 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     """``_whiten_staircase`` (the rows of ``Hw`` cut where ``L`` is zero, sorted, the Gram product by strips over
     the rows that reach them, the virtual columns split off as a rank-6 term) gives the ``A = I + Hw^T Hw`` and
     ``g = Hw^T rw`` of the dense product ``Hw = R^-1/2 H L_aug``, and ``_whiten_g`` takes it past 64 columns."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import whiten as kw
 
     rng = np.random.default_rng(N + 7 * len(masked))
     n, cols, Hval = _staircase_rows(rng, N, virtual, masked)
@@ -396,7 +396,7 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     A_ref, g_ref = np.eye(n) + Hw.T @ Hw, Hw.T @ rw_ref
     Hs, rw, A, g = np.full((m, n), np.nan), np.empty(m), np.full((n, n), np.nan), np.empty(n)
     ws, wi = np.empty(7 * m + 16 * n + 14), np.empty(2 * m + n + 1, np.int64)
-    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi, True)
+    kw._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi, True)
     np.testing.assert_allclose(rw, rw_ref, rtol=1e-15, atol=0)
     np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
     np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
@@ -404,13 +404,13 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     # without ``upper`` (an EKF step, which reads only the lower triangle): the same lower triangle and g, and the
     # upper triangle not mirrored (left NaN above the diagonal blocks of the strips, without virtual columns)
     A1, g1 = np.full((n, n), np.nan), np.empty(n)
-    ku._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A1, g1, ws, wi, False)
+    kw._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A1, g1, ws, wi, False)
     low = np.tril_indices(n)
     assert np.array_equal(A1[low], A[low]) and np.array_equal(g1, g)
     assert np.isnan(A1[0, n - 1])
     A2, g2 = np.empty((n, n)), np.empty(n)
-    ku._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi, True)
-    if n > ku.LARGE_N:
+    kw._whiten_g(hx, Hval, cols, y, rws, Laug, np.empty((m, n)), rw, A2, g2, ws, wi, True)
+    if n > kw.LARGE_N:
         assert np.array_equal(A2, A) and np.array_equal(g2, g)
     else:  # the dense product below LARGE_N (g summed row by row as the rows are formed)
         np.testing.assert_allclose(A2, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
@@ -422,7 +422,7 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
     """``_whiten`` forms two consecutive rows that see the same columns in one pass: each row equals, bit for bit,
     the row whitened alone, also where one row of a pair has a group of four zero values (which a row alone skips)
     or a whole masked feature; ``Hw``, ``A`` and ``g`` equal the dense product's to round-off."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import whiten as kw
 
     rng = np.random.default_rng(23 + virtual)
     n, cols, Hval = _staircase_rows(rng, 5, virtual, masked=(2,))
@@ -433,12 +433,12 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
     m = cols.shape[0]
     Laug, y, hx, rws = _whitening_inputs(rng, n, m, virtual)
     Hw, rw, A, g = np.empty((m, n)), np.empty(m), np.empty((n, n)), np.empty(n)
-    ku._whiten(hx, Hval, cols, y, rws, Laug, Hw, rw, A, g)
+    kw._whiten(hx, Hval, cols, y, rws, Laug, Hw, rw, A, g)
     pairs = sum(np.array_equal(cols[r], cols[r + 1]) for r in range(m - 1))
     assert pairs > m // 2  # the paired path is exercised
     for r in range(m):  # each row alone
         H1, rw1, A1, g1 = np.empty((1, n)), np.empty(1), np.empty((n, n)), np.empty(n)
-        ku._whiten(hx[r : r + 1], Hval[r : r + 1], cols[r : r + 1], y[r : r + 1], rws[r : r + 1], Laug, H1, rw1, A1, g1)
+        kw._whiten(hx[r : r + 1], Hval[r : r + 1], cols[r : r + 1], y[r : r + 1], rws[r : r + 1], Laug, H1, rw1, A1, g1)
         assert np.array_equal(H1[0], Hw[r]), r
     Hw_ref = _dense_whitened(cols, Hval, rws, Laug)
     np.testing.assert_allclose(Hw, Hw_ref, rtol=0, atol=1e-13 * np.abs(Hw_ref).max())
@@ -450,11 +450,11 @@ def test_whiten_forms_rows_with_the_same_columns_in_pairs(virtual):
 @pytest.mark.parametrize("n", [1, 2, 7, 30, 32, 33, 70, 100])
 def test_gram_lower_blocked(n):
     """The lower triangle of ``M^T M`` (blocked past 32 columns) equals numpy's product."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import whiten as kw
 
     M = np.random.default_rng(n).standard_normal((2 * n + 3, n))
     G = np.full((n, n), np.nan)
-    ku._gram_lower(M, G)
+    kw._gram_lower(M, G)
     ref = M.T @ M
     il = np.tril_indices(n)
     np.testing.assert_allclose(G[il], ref[il], rtol=0, atol=1e-12 * np.abs(ref).max())
@@ -467,18 +467,18 @@ def test_cholesky_potrf_in_place_and_on_blocks(n):
     is not positive definite or has a non-finite pivot."""
     from numba import njit
 
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import cholesky as kchol
 
     @njit
     def on_block(C, W, m):
-        return ku._cholesky(C[:m, :m], W[:m, :m])
+        return kchol._cholesky(C[:m, :m], W[:m, :m])
 
     rng = np.random.default_rng(n)
     M = rng.standard_normal((n, n))
     A = M @ M.T + n * np.eye(n)
     ref = np.linalg.cholesky(A)
     L = np.full((n, n), np.nan)
-    assert ku._cholesky(A, L)
+    assert kchol._cholesky(A, L)
     np.testing.assert_allclose(L, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     assert np.all(np.triu(L, 1) == 0.0)
     C = np.full((n + 4, n + 4), 7.0)
@@ -488,40 +488,40 @@ def test_cholesky_potrf_in_place_and_on_blocks(n):
     np.testing.assert_allclose(W[:n, :n], ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     assert np.all(W[n:] == 5.0) and np.all(W[:, n:] == 5.0)  # nothing written outside the block
     Ls = np.full((n, 2 * n), np.nan)
-    assert ku._cholesky(A, Ls[:, ::2])  # strided columns: through a contiguous copy
+    assert kchol._cholesky(A, Ls[:, ::2])  # strided columns: through a contiguous copy
     np.testing.assert_allclose(Ls[:, ::2], ref, rtol=0, atol=1e-13 * np.abs(ref).max())
     bad = A.copy()
     bad[n - 1, n - 1] = -1.0
-    assert not ku._cholesky(bad, L)
+    assert not kchol._cholesky(bad, L)
     bad[n - 1, n - 1] = np.inf
-    assert not ku._cholesky(bad, L)
+    assert not kchol._cholesky(bad, L)
     bad[n - 1, n - 1] = np.nan
-    assert not ku._cholesky(bad, L)
+    assert not kchol._cholesky(bad, L)
 
 
 @pytest.mark.parametrize("n", [0, 1, 3, 4, 7, 16, 29, 134])
 def test_dot_and_chol_solve(n):
     """The four-sum ``_dot``/``_dot_row`` equal ``np.dot``; ``_forward`` and ``_chol_solve`` (rows of ``L`` for the
     back substitution) equal numpy's triangular and full solves."""
-    from stereopose_mc.core.kernels import model as km2
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import cholesky as kchol
+    from stereopose_mc.core.kernels import rows as kr
 
     rng = np.random.default_rng(100 + n)
     a, b = rng.standard_normal((2, n))
     ref = float(np.dot(a, b)) if n else 0.0
-    assert km2._dot(a, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
+    assert kr._dot(a, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
     M = np.vstack([b, a]) if n else np.zeros((2, 0))
-    assert km2._dot_row(M, 1, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
+    assert kr._dot_row(M, 1, b, 0, n) == pytest.approx(ref, rel=1e-13, abs=1e-13)
     if n == 0:
         return
-    assert km2._dot(a, b, 1, n - 1) == pytest.approx(float(np.dot(a[1 : n - 1], b[1 : n - 1])), rel=1e-13, abs=1e-13)
+    assert kr._dot(a, b, 1, n - 1) == pytest.approx(float(np.dot(a[1 : n - 1], b[1 : n - 1])), rel=1e-13, abs=1e-13)
     X = rng.standard_normal((n, n))
     L = np.linalg.cholesky(X @ X.T + n * np.eye(n))
     w = np.empty(n)
-    ku._forward(L, a, w)
+    kchol._forward(L, a, w)
     np.testing.assert_allclose(L @ w, a, rtol=0, atol=1e-12 * max(1.0, np.abs(a).max()))
     x = a.copy()
-    ku._chol_solve(L, x)
+    kchol._chol_solve(L, x)
     np.testing.assert_allclose(x, np.linalg.solve(L @ L.T, a), rtol=1e-10, atol=1e-12)
 
 
@@ -532,16 +532,16 @@ def test_row_kernels_read_rows_in_place(n):
     ``_cholesky_small`` calls it); ``_ptr`` addresses element ``i * ld + j`` of a matrix."""
     from numba import njit
 
-    from stereopose_mc.core.kernels import model as km2
+    from stereopose_mc.core.kernels import rows as kr
 
     rng = np.random.default_rng(300 + n)
     M, V = rng.standard_normal((2, 5, n))
     for i, j in ((0, 0), (1, 3), (4, 2)):
-        got = km2._dot_rows(M, i, V, j, 0, n)
-        assert got == km2._dot_row(M, i, V[j].copy(), 0, n)
+        got = kr._dot_rows(M, i, V, j, 0, n)
+        assert got == kr._dot_row(M, i, V[j].copy(), 0, n)
         assert got == pytest.approx(float(np.dot(M[i], V[j])) if n else 0.0, rel=1e-13, abs=1e-13)
         if n > 2:
-            assert km2._dot_rows(M, i, V, j, 1, n - 1) == km2._dot_row(M, i, V[j].copy(), 1, n - 1)
+            assert kr._dot_rows(M, i, V, j, 1, n - 1) == kr._dot_row(M, i, V[j].copy(), 1, n - 1)
     if n == 0:
         return
     K = 9
@@ -552,14 +552,14 @@ def test_row_kernels_read_rows_in_place(n):
         want = O.copy()
         want[o, lo:hi] += sign * (Cf[c, k0:k1] @ A[k0:k1, lo:hi])
         O1, O2 = O.copy(), O.copy()
-        km2._combine_rows(O1, o, lo, hi, A, Cf, c, k0, k1, sign)
+        kr._combine_rows(O1, o, lo, hi, A, Cf, c, k0, k1, sign)
         np.testing.assert_allclose(O1, want, rtol=1e-13, atol=1e-13)
-        km2._combine_rows(O2, o, lo, hi, A, np.ascontiguousarray(Cf.T).T, c, k0, k1, sign)  # a strided Cf
+        kr._combine_rows(O2, o, lo, hi, A, np.ascontiguousarray(Cf.T).T, c, k0, k1, sign)  # a strided Cf
         np.testing.assert_array_equal(O2, O1)
 
     @njit
     def read(a, k):
-        return km2._ptr(a, k)[0]
+        return kr._ptr(a, k)[0]
 
     B = rng.standard_normal((4, n))
     for i, j in ((0, 0), (3, n - 1), (2, n // 2)):
@@ -576,10 +576,10 @@ def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
     script = tmp_path / "reload.py"
     script.write_text(
         "import numpy as np\n"
-        "from stereopose_mc.core.kernels import consistency as kc, update as ku\n"
+        "from stereopose_mc.core.kernels import cholesky as kchol, consistency as kc\n"
         "rng = np.random.default_rng(0)\n"
         "n = 29; M = rng.standard_normal((n, n)); A = M @ M.T + n * np.eye(n); L = np.empty((n, n))\n"
-        "assert ku._cholesky(A, L)\n"
+        "assert kchol._cholesky(A, L)\n"
         "x = np.zeros((2, 30)); x[:, 9] = 1.0; x[:, 13:28] = rng.standard_normal((2, 15)); xt = x.copy()\n"
         "xt[:, 0] += 0.1\n"
         "out, pd = kc.nees_batch(x, np.broadcast_to(np.eye(29) * 0.01, (2, 29, 29)).copy(), xt, False,\n"

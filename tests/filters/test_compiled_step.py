@@ -138,14 +138,14 @@ def test_every_step_of_whole_trials_with_20_points_agrees(monkeypatch, error_sta
     case B (the IEKF, the EKF with an iterated first update: the plain EKF is lost, and past 20 steps its numpy
     path moves by 1e-8 sigma for one ulp): every step agrees as in case B. (The other charts: one update each,
     ``test_update_kernels_past_64_columns_equal_numpy``.)"""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import whiten as kw
     from stereopose_mc.mc import trial
 
     both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
     points = sphere_points(20, 1.5).tolist()
     scn, setup, truth, exact, filters = _prepared(error_state=error_state, target={"feature_points_m": points}, **FREE)
-    assert setup.x0.size - (error_state != "full") > ku.LARGE_N
+    assert setup.x0.size - (error_state != "full") > kw.LARGE_N
     run_chunk(scn.seed, np.arange(3), setup, truth, exact, filters, Bounds(), kernels="both")
     _steps_agree(both, filters)
 
@@ -475,7 +475,7 @@ def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error
     covariance in the error states; in the full state (whose prior includes the quaternion's norm direction)
     1e-9, or 5x numpy's own change when its prior moves by one ulp, whichever is larger (as the whole-trial
     tests' first updates)."""
-    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.core.kernels import whiten as kw
     from stereopose_mc.filters import compiled, estimators
 
     for N in (20, 30):
@@ -485,7 +485,7 @@ def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error
             fs = dataclasses.replace(fs, error_state=error_state)
         if error_state == "attitude":
             P = aligned.to_attitude_chart(x, P)
-        assert P.shape[-1] > ku.LARGE_N
+        assert P.shape[-1] > kw.LARGE_N
         assert compiled.chart_code(fs) == {"full": 0, "aligned": 1, "attitude": 2}[error_state]
         rows = np.arange(len(x))
         a = estimators.update(x, P, step, rows, fs, setup)

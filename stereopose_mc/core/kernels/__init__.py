@@ -4,11 +4,12 @@ Importing this package compiles nothing: the kernels are compiled on first call 
 cache, ``cache=True``). One idea per module:
 
 - ``model``: ``f``, RK4, ``F``, the transition matrix and the block-structured covariance predict, ``h`` and ``H``
-  per feature and the inertia pseudo-measurement rows (and the small row/dot primitives the others share);
+  per feature and the inertia pseudo-measurement rows; ``rows``: the small row/dot primitives the others share;
 - ``aligned``, ``attitude``: the two error-state charts (chart, ``S``, ``T``, the error-state covariance predict,
   the row-sparse ``H_e``); ``charts``: their batch entry points (the chart's code as an argument);
 - ``whiten``: ``Hw = R^-1/2 H L``, ``g`` and ``A = I + Hw^T Hw``; ``centred``: the aligned chart's centred point
-  coordinates for large ``n``; ``cholesky``: the Cholesky factorizations and triangular solves;
+  coordinates for large ``n``; ``cholesky``: the Cholesky factorizations and triangular solves; ``triangular``: the
+  whitened ``A`` factorized in reverse order and ``P+ = L A^-1 L^T`` with its square root;
 - ``update``: the EKF and IEKF update loop in any of the three charts (which, given the truth, evaluates each
   posterior's NEES as it forms it); ``consistency``: the per-step NEES and errors.
 

@@ -41,8 +41,9 @@ from ._refs import borrow, keep
 from .attitude import _qmul, _quat_times, _small_quaternion, _small_quaternion_jacobian
 from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, E_SHIFT, K_SIZE, OMEGA,
                       POINTS, QUAT, R_K, REDUCED, RHO, RHO_DOT, VEC, e_n_points)  # fmt: skip
-from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, _mirror_lower, row_columns
+from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, row_columns
 from .model import n_points as _n_points
+from .rows import _mirror_lower
 
 _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
 

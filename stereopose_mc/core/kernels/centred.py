@@ -16,7 +16,8 @@ from __future__ import annotations
 from numba import njit
 
 from ..layout import E_POINTS, VEC
-from .model import NNZ, _dot_row, _mirror_lower
+from .model import NNZ
+from .rows import _dot_row, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 

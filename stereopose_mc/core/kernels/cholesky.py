@@ -3,9 +3,9 @@
 ``_cholesky`` (LAPACK's ``potrf`` in place), its transposed layout ``_cholesky_t`` (the update's large ``n``: by
 ``_upper_blocked``, blocks of rows around BLAS products),
 ``_cholesky_upper`` (the NEES's own factor of ``P``), ``_cholesky_small`` (written out, for the NEES's small
-blocks) and ``_forward`` (forward substitution). Shared by ``core.kernels.update`` and
-``core.kernels.consistency``, which the update calls in turn for the NEES of its posteriors (this module
-imports neither of them).
+blocks), ``_forward`` (forward substitution) and ``_chol_solve`` (``(L L^T)^-1 b``). Shared by ``core.kernels.update`` and
+``core.kernels.consistency`` (and ``core.kernels.triangular``, the update's reverse-order factorization), which
+the update calls in turn for the NEES of its posteriors (this module imports none of them).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit, types
 
-from .model import _combine_rows, _dot_row, _ptr
+from .rows import _combine_rows, _dot_row, _ptr
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -125,7 +125,7 @@ def _upper_blocked(U):
     a block of ``CHOL_BLOCK`` rows first takes off all the rows above it by one BLAS product (``U[j0:j1, j0:] -=
     U[:j0, j0:j1]^T U[:j0, j0:]``, column-major: ``U^T[j0:, j0:j1] -= U^T[j0:, :j0] U[:j0, j0:j1]``), within it each
     pair of rows (``CHOL_ROWS``) the block's rows above it the same way, and each row its pair's first row
-    (``model._combine_rows``): faster than LAPACK's (OpenBLAS's) ``potrf`` on the large path's sizes, its numbers
+    (``rows._combine_rows``): faster than LAPACK's (OpenBLAS's) ``potrf`` on the large path's sizes, its numbers
     to round-off (``potrf`` blocks likewise, by other blocks); ``potrf`` stays below ``LARGE_N``, where the two are
     even. ``U`` must be C-contiguous (the kernels' scratch); any other layout goes to
     ``potrf`` (the same factor)."""
@@ -183,7 +183,7 @@ def _lower_to_upper(A, U):
 @njit(**_JIT)
 def _upper_rows(A, U, recip=True):
     """Upper ``U`` with ``U^T U = A`` (the lower triangle of ``A`` read), row by row: ``U[j, j:] = (A[j:, j] - sum_{k<j}
-    U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``model._combine_rows``, contiguous); False if
+    U[k, j] U[k, j:]) / sqrt(pivot)``, four rows of ``U`` per pass (``rows._combine_rows``, contiguous); False if
     ``A`` is not positive definite (a pivot not > 0, NaN included). Written out, for small blocks (faster than
     ``potrf`` there, slower past ``consistency.ROWS_MAX``). ``recip``: a row is multiplied by the reciprocal
     of its pivot's square root; else divided by it (``_cholesky_small``'s numbers, which the NEES's scalar 2 x 2 and
@@ -244,3 +244,17 @@ def _forward(L, b, out, lo=0):
         else:
             t = b[i] - _dot_row(L, i, out, lo, i)
         out[i] = t / L[i, i]
+
+
+@njit(**_JIT)
+def _chol_solve(L, b):
+    """``b <- (L L^T)^-1 b`` in place (``b`` a vector)."""
+    n = L.shape[0]
+    _forward(L, b, b)
+    # L^T x = b from the last row up, by rows of L (contiguous): x_i = b_i / L_ii, then b_k -= L_ik x_i, k < i
+    for i in range(n - 1, -1, -1):
+        xi = b[i] / L[i, i]
+        b[i] = xi
+        Li = L[i]
+        for k in range(i):
+            b[k] -= Li[k] * xi

@@ -49,8 +49,9 @@ from . import writable as _writable
 from ._refs import borrow, keep
 from .aligned import _apply_error_map, _error_map, _local, _qmul
 from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward, _upper_rows
-from .model import Q_END, _dot, _dot_row, _dot_rows, _mirror_lower
+from .model import Q_END
 from .model import n_points as _n_points
+from .rows import _dot, _dot_row, _dot_rows, _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -415,7 +416,7 @@ def _forward5(R, W):
 def _project_off(W, j0, j1):
     """Rows ``j0..j1-1`` of ``W`` made orthonormal (modified Gram-Schmidt, in order) and ``W[0]`` projected off
     each in turn; returns ``|W[0]|^2`` after the first projection (the others are in ``W[0]``). Each dot product
-    in four partial sums (``model._dot_row``: one running sum is a chain of dependent additions)."""
+    in four partial sums (``rows._dot_row``: one running sum is a chain of dependent additions)."""
     n = W.shape[1]
     first = 0.0
     for j in range(j0, j1):

@@ -26,8 +26,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from ..layout import COMMON, K_SIZE, OMEGA, POINTS, QUAT, QUAT_SIZE, R_K, REDUCED, RHO, RHO_DOT, TRANSLATION, VEC
 from ..layout import n_points as _layout_n_points
@@ -42,110 +41,6 @@ Q_END = QUAT + QUAT_SIZE
 n_points = njit(inline="always", error_model="numpy")(_layout_n_points)  # core.layout's, inside the kernels
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
-
-
-@njit(**_JIT)
-def _mirror_lower(A):
-    """Copy the lower triangle of the square ``A`` onto its upper triangle (in place)."""
-    n = A.shape[0]
-    for i in range(n):
-        for j in range(i):
-            A[j, i] = A[i, j]
-
-
-@njit(**_JIT)
-def _combine_rows(O, o, lo, hi, M, Cf, c, k0, k1, sign):
-    """``O[o, lo:hi] += sign * sum_{k0 <= k < k1} Cf[c, k] M[k, lo:hi]``, four rows of ``M`` per pass.
-
-    The row operation of the factorizations and triangular solves: contiguous (vectorizable
-    without reassociating a sum), and the row ``O[o]`` is read and written a quarter as often as
-    with one axpy per row; a group of four zero coefficients is skipped. The rows are indexed in
-    place, not passed as views (``O[o]``, ``Cf[c]``): each array view a compiled function makes
-    costs an atomic increment and decrement of its reference count, which between the stores of
-    a solve's rows cost more than their arithmetic.
-    """
-    k = k0
-    while k + 4 <= k1:
-        a0, a1, a2, a3 = sign * Cf[c, k], sign * Cf[c, k + 1], sign * Cf[c, k + 2], sign * Cf[c, k + 3]
-        if a0 != 0.0 or a1 != 0.0 or a2 != 0.0 or a3 != 0.0:
-            for j in range(lo, hi):
-                O[o, j] += (a0 * M[k, j] + a1 * M[k + 1, j]) + (a2 * M[k + 2, j] + a3 * M[k + 3, j])
-        k += 4
-    while k < k1:
-        a = sign * Cf[c, k]
-        if a != 0.0:
-            for j in range(lo, hi):
-                O[o, j] += a * M[k, j]
-        k += 1
-
-
-@intrinsic
-def _ptr(typingctx, a, k):
-    """The address of element ``k`` of the C-contiguous array ``a`` in flat order (``i * ld + j`` of a matrix),
-    for BLAS and LAPACK calls on sub-matrices: not ``a[i, j:].ctypes``, a view whose reference count costs two
-    atomic operations per call."""
-    sig = types.CPointer(a.dtype)(a, k)
-
-    def codegen(context, builder, signature, args):
-        ary = context.make_array(signature.args[0])(context, builder, args[0])
-        off = context.cast(builder, args[1], signature.args[1], types.intp)
-        return builder.gep(ary.data, [off])
-
-    return sig, codegen
-
-
-@njit(**_JIT)
-def _dot_row(M, i, b, lo, hi):
-    """``sum_{lo <= k < hi} M[i, k] b[k]`` in four partial sums, added at the end.
-
-    A single running sum is one chain of dependent additions (each waits for the last: ~4
-    cycles per term), which the compiler may not reorder without ``fastmath``; four
-    independent chains run ~4x faster at the lengths of these kernels (30-140). The order is
-    fixed, so a trial's result does not depend on anything but its own inputs. Reads row ``i``
-    in place (no row view to build: this runs once per row of a solve).
-    """
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    k = lo
-    while k + 4 <= hi:
-        s0 += M[i, k] * b[k]
-        s1 += M[i, k + 1] * b[k + 1]
-        s2 += M[i, k + 2] * b[k + 2]
-        s3 += M[i, k + 3] * b[k + 3]
-        k += 4
-    while k < hi:
-        s0 += M[i, k] * b[k]
-        k += 1
-    return (s0 + s1) + (s2 + s3)
-
-
-@njit(**_JIT)
-def _dot_rows(M, i, V, j, lo, hi):
-    """``_dot_row`` of two rows, ``sum_{lo <= k < hi} M[i, k] V[j, k]`` (the same sums in the same order), read in
-    place: a row view (``V[j]``) costs an atomic increment and decrement of its reference count."""
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    k = lo
-    while k + 4 <= hi:
-        s0 += M[i, k] * V[j, k]
-        s1 += M[i, k + 1] * V[j, k + 1]
-        s2 += M[i, k + 2] * V[j, k + 2]
-        s3 += M[i, k + 3] * V[j, k + 3]
-        k += 4
-    while k < hi:
-        s0 += M[i, k] * V[j, k]
-        k += 1
-    return (s0 + s1) + (s2 + s3)
-
-
-@njit(**_JIT)
-def _dot(a, b, lo, hi):
-    """``sum_{lo <= k < hi} a[k] b[k]`` of two vectors: ``_dot_row`` on ``a`` as a one-row matrix."""
-    return _dot_row(a.reshape((1, a.shape[0])), 0, b, lo, hi)
 
 
 # --- attitude building blocks ------------------------------------------------------

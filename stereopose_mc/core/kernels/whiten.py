@@ -14,7 +14,8 @@ import numpy as np
 from numba import njit
 
 from .cholesky import _KIND_D, _NOTRANS, _TRANS, _xxgemm
-from .model import NNZ, _mirror_lower
+from .model import NNZ
+from .rows import _mirror_lower
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
