@@ -212,7 +212,7 @@ def _projection_gradients(rho_i: Array, rho_dot_i: Array, baseline: float, dispa
     iy2 = iy * iy
     xl = x - baseline
     # built channel-first (contiguous writes), returned as a (..., N, C, 6) view
-    out = np.zeros((9 if disparity else 8, 6) + y.shape)
+    out = np.zeros((lay.n_channels(disparity), 6) + y.shape)
     # positions: u_R, v_R, u_L, v_L (= v_R)
     out[0, 0] = out[2, 0] = iy
     out[0, 1] = -x * iy2

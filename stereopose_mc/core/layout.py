@@ -64,6 +64,25 @@ CHART_ATTITUDE = 2  # the attitude error state (core.errorstate)
 CHARTS = {"full": CHART_FULL, "aligned": CHART_ALIGNED, "attitude": CHART_ATTITUDE}
 
 
+# --- the measurement vector y of one step ---------------------------------------------------------------------------
+# per visible feature its channels (core.camera.channels: u_R, v_R, u_L, v_L and their rates, + the disparity d),
+# feature after feature, then the inertia pseudo-measurement's rows (filters.relnav)
+FEATURE_CHANNELS = 8  # u_R, v_R, u_L, v_L, du_R, dv_R, du_L, dv_L
+DISPARITY_CHANNELS = 1  # d, with the scenario's disparity channel
+PSEUDO_ROWS = 3  # the pseudo-measurement of the angular acceleration, in T
+
+
+def n_channels(disparity: bool) -> int:
+    """Channels per visible feature: 8, or 9 with the disparity."""
+    return FEATURE_CHANNELS + (DISPARITY_CHANNELS if disparity else 0)
+
+
+def n_measurements(n_visible: int, disparity: bool, pseudo: bool) -> int:
+    """Length of a step's measurement vector: the visible features' channels (``n_channels``, written out: the
+    kernels compile this function alone), then the pseudo rows."""
+    return n_visible * (FEATURE_CHANNELS + (DISPARITY_CHANNELS if disparity else 0)) + (PSEUDO_ROWS if pseudo else 0)
+
+
 def n_state(N: int) -> int:
     """Length of the state with ``N`` feature points."""
     return FIXED + VEC * N

@@ -41,11 +41,12 @@ from ..core.kernels import charts as kch
 from ..core.kernels import model as km
 from ..core.kernels import update as ku
 from ..core.kernels import writable as _writable
+from ..core.layout import CHART_ATTITUDE, CHART_FULL, CHARTS, n_channels, n_measurements
 from ..core.orbit import leader_kinematics
 from . import estimators, registry, relnav, ukf
 
 Array = NDArray[np.float64]
-CHART_CODES = {"full": 0, "aligned": 1, "attitude": 2}  # the kernels' ``chart`` argument
+CHART_CODES = CHARTS  # the kernels' ``chart`` argument (core.layout)
 _CONSTANTS: dict = {}  # per-configuration arrays of the step (_constants, _q_batch)
 # 2 to this many trials the kernels leave to numpy's update (their P- or A does not factorize) are handed to the
 # caller (PartialUpdateError, tried=False), which updates them one by one (mc.trial._left_to_numpy) with no batch
@@ -121,7 +122,7 @@ def kernel_predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) 
         x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
     else:  # the same kernels in one call
         x_pred, T = km.predict_state_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, setup.dt, fs.taylor_order)
-    if chart != 0:
+    if chart != CHART_FULL:
         return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n), chart)
     return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
 
@@ -159,17 +160,24 @@ def _charts(fs: FilterSetup) -> tuple:
     return (_batched(functools.partial(kch.chart_batch, code)), _batched(functools.partial(kch.local_batch, code)))
 
 
+def step_model(setup: Setup, vis: Array, nd: float, ndd: float) -> km.StepModel:
+    """The kernels' measurement model of a step (``model.StepModel``): the visible features ``vis`` (int64), the
+    scenario's camera and pseudo rows, the leader's ``nu'``, ``nu''``; each field of the one type the kernels are
+    compiled for (a float where an int was given would be a second signature of every kernel it enters)."""
+    return km.StepModel(vis, float(setup.baseline), bool(setup.disparity), float(setup.focal), bool(setup.pseudo),
+                        float(nd), float(ndd))  # fmt: skip
+
+
 def _measurer(setup: Setup, step: relnav.StepMeasurement):
     """``(states (M, n), trials (M,)) -> h (M, m)``: ``relnav.measurement_model``'s ``h`` without ``H``, compiled
     (``model.measure_h_batch``), the pseudo rows with each state's trial's measured acceleration."""
     _, nd, ndd = _leader(setup.orbit, float(step.t))
     nd, ndd = float(nd[0]), float(ndd[0])
-    vis = np.flatnonzero(step.visible).astype(np.int64)
+    model = step_model(setup, np.flatnonzero(step.visible).astype(np.int64), nd, ndd)
 
     def measure_h(states: Array, trials: Array) -> Array:
         alpha = _writable(step.alpha[trials]) if setup.pseudo else np.zeros((states.shape[0], 3))
-        return km.measure_h_batch(_writable(states), vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
-                                  alpha, nd, ndd)  # fmt: skip
+        return km.measure_h_batch(_writable(states), model, alpha)
 
     return measure_h
 
@@ -180,18 +188,17 @@ def measurement_model(setup: Setup, step: relnav.StepMeasurement):
     call on a few trials (~0.55 ms for one trial of case B: 70 % of numpy's update there)."""
     _, nd, ndd = _leader(setup.orbit, float(step.t))
     nd, ndd = float(nd[0]), float(ndd[0])
-    vis = np.flatnonzero(step.visible).astype(np.int64)
-    C = 9 if setup.disparity else 8
+    model = step_model(setup, np.flatnonzero(step.visible).astype(np.int64), nd, ndd)
+    vis, C = tuple(model.vis.tolist()), n_channels(setup.disparity)
 
     def measure(x: Array, rows: Array, jac: bool = True):
         x = _writable(x)
         alpha = _writable(step.alpha[rows]) if setup.pseudo else np.zeros((x.shape[0], 3))
-        args = (vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha, nd, ndd)
         if not jac:
-            return km.measure_h_batch(x, *args), None
-        hx, Hval = km.measure_batch(x, *args, True)
+            return km.measure_h_batch(x, model, alpha), None
+        hx, Hval = km.measure_batch(x, model, alpha, True)
         n = x.shape[1]
-        return hx, km.dense(Hval, _model_columns(n, tuple(vis.tolist()), C, setup.pseudo), n)
+        return hx, km.dense(Hval, _model_columns(n, vis, C, setup.pseudo), n)
 
     return measure
 
@@ -216,12 +223,12 @@ def linearized(x: Array, alpha: Array, vis: Array, setup: Setup, nd: float, ndd:
 
     ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1, 2: ``mekf.error_measurement`` at ``e = 0``.
     """
-    C = 9 if setup.disparity else 8
-    args = (vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha, nd, ndd, True)
-    if chart == 0:
-        hx, Hval = km.measure_batch(x, *args)
+    C = n_channels(setup.disparity)
+    model = step_model(setup, vis, nd, ndd)
+    if chart == CHART_FULL:
+        hx, Hval = km.measure_batch(x, model, alpha, True)
         return hx, km.dense(Hval, km.measurement_columns(ne, vis, C, setup.pseudo), ne)
-    hx, Hval = kch.measure_batch(chart, x, np.zeros((x.shape[0], ne)), *args)
+    hx, Hval = kch.measure_batch(chart, x, np.zeros((x.shape[0], ne)), model, alpha, True)
     return hx, kch.dense(chart, Hval, kch.measurement_columns(chart, ne, vis, C, setup.pseudo), ne)
 
 
@@ -293,11 +300,11 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     if hit is not None and hit[0] is fs and hit[1] is setup:
         return hit[2]
     vis = np.flatnonzero(visible).astype(np.int64)
-    C = 9 if setup.disparity else 8
-    m = vis.size * C + (3 if setup.pseudo else 0)
+    C = n_channels(setup.disparity)
+    m = n_measurements(vis.size, setup.disparity, setup.pseudo)
     R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, vis.size), (b, m)))
     chart = chart_code(fs)
-    cols = (km.measurement_columns(ne, vis, C, setup.pseudo) if chart == 0 else
+    cols = (km.measurement_columns(ne, vis, C, setup.pseudo) if chart == CHART_FULL else
             kch.measurement_columns(chart, ne, vis, C, setup.pseudo))  # fmt: skip
     fixed = (np.zeros(b, int), np.full(b, vis.size, np.int64), np.ones(b, int), np.ones(b, bool))
     for a in fixed:
@@ -347,14 +354,13 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     if keep is not None:
         used = keep.sum(axis=-1)
     mask = ones if keep is None else _row_mask(keep, b, m, C)
-    args = (x, P, y, R, mask, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, alpha,
-            nd, ndd, cols, chart)  # fmt: skip
+    args = (x, P, y, R, mask, step_model(setup, vis, nd, ndd), alpha, cols, chart)
     if x_true is None:
         xt = _no_truth(x.shape[1])
     else:
         xt = x_true if x_true.ndim == 1 or every else x_true[rows]
         xt = _writable(np.broadcast_to(xt, x.shape))
-    judge = (xt, chart == 2)  # the NEES's attitude error state (mc.trial.nees_and_pd): the attitude chart's P
+    judge = (xt, chart == CHART_ATTITUDE)  # the NEES's attitude error state (mc.trial.nees_and_pd): the attitude chart's P
     if iterated is None:
         xo, Po, nu, nis, ok, Lo, ev = ku.ekf_update_batch(*args, *judge)
         its, conv = one_iteration, converged

@@ -43,6 +43,7 @@ from ..config.resolve import FilterSetup, Setup, filter_setup_of, setup_of
 from ..config.dispersions import units as dispersion_units
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
+from ..core.layout import n_state
 from ..rundir import integrity, runlock, store, tables
 from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
@@ -448,7 +449,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     manifest = store.base_manifest(opts.command)
     manifest.update(
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
-        filters=[f.label for f in scn.filters], state_dim=13 + 3 * feature_count(scn) + 2,
+        filters=[f.label for f in scn.filters], state_dim=n_state(feature_count(scn)),
         timeseries=opts.timeseries, code_version=code, start=store.now_iso(),
         end=None, chunks=[],
     )  # fmt: skip

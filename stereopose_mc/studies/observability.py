@@ -39,6 +39,7 @@ from ..core import observability as ob
 from ..core import quaternion as qt
 from ..core import state as st
 from ..core.kalman import transition_matrix
+from ..core.layout import OMEGA, QUAT, QUAT_SIZE, RHO, RHO_DOT, VEC, k_offset, n_points, point
 from ..core.orbit import leader_kinematics
 from ..sim.measurements import channel_sigmas
 from ..sim.truth import Truth, simulate_truth
@@ -324,8 +325,9 @@ def filter_state_lines(r: dict[str, Any]) -> list[str]:
         )
     out.append("CRLB sqrt(diag((W + P0^-1)^-1)) (SI: m, m/s, rad/s, -, m, -):")
     sig = r["crlb_sigma"]
-    blocks = [names[0:3], names[3:6], names[6:9], names[9:13]]
-    blocks += [names[13 + 3 * i : 16 + 3 * i] for i in range((len(names) - 15) // 3)] + [names[-2:]]
+    n = len(names)
+    blocks = [names[RHO:RHO_DOT], names[RHO_DOT:OMEGA], names[OMEGA:QUAT], names[QUAT : QUAT + QUAT_SIZE]]
+    blocks += [names[point(i) : point(i) + VEC] for i in range(n_points(n))] + [names[k_offset(n) :]]
     for b in blocks:
         out.append("  " + "  ".join(f"{k} {sig[k]:.3e}" for k in b))
     rms = r["crlb_rms"]

@@ -86,3 +86,12 @@ def test_visibility_requires_positive_depth():
     np.testing.assert_array_equal(camera.visible(x_rot), [True, True, False, True])
     both = camera.visible(np.stack([x, x_rot]))
     assert both.shape == (2, len(pts))
+
+
+def test_channel_counts_are_the_layouts():
+    """``core.layout``'s channel counts (what the kernels and the measurement vector use) match the channel names."""
+    from stereopose_mc.core import layout
+
+    for disparity in (False, True):
+        assert layout.n_channels(disparity) == len(camera.channels(disparity))
+        assert layout.n_measurements(4, disparity, True) == 4 * len(camera.channels(disparity)) + layout.PSEUDO_ROWS

@@ -126,7 +126,7 @@ def test_measurement_matches_numpy(disparity, pseudo, focal):
     B, n = x.shape
     vis = np.array([0, 2, 3, 5])
     alpha = 1e-5 * np.random.default_rng(2).normal(size=(B, 3))
-    hx, Hval = km.measure_batch(x, vis, 0.7, disparity, focal, pseudo, alpha, ND, NDD, True)
+    hx, Hval = km.measure_batch(x, km.StepModel(vis, 0.7, disparity, focal, pseudo, ND, NDD), alpha, True)
     C = 9 if disparity else 8
     h_np = [camera.h_features(x, 0.7, disparity, focal)[:, vis].reshape(B, -1)]
     H_np = [jacobians.H_features(x, 0.7, disparity, focal)[:, vis].reshape(B, -1, n)]
@@ -137,7 +137,7 @@ def test_measurement_matches_numpy(disparity, pseudo, focal):
     assert np.max(np.abs(hx - h_np) / np.maximum(np.abs(h_np), 1e-300)) < 1e-12
     H = km.dense(Hval, km.measurement_columns(n, vis, C, pseudo), n)
     assert rel(H, H_np) < 1e-12
-    h_only, _ = km.measure_batch(x, vis, 0.7, disparity, focal, pseudo, alpha, ND, NDD, False)
+    h_only, _ = km.measure_batch(x, km.StepModel(vis, 0.7, disparity, focal, pseudo, ND, NDD), alpha, False)
     assert np.array_equal(h_only, hx)
 
 
@@ -148,9 +148,9 @@ def test_measurement_jacobian_finite_differences():
     alpha = np.array([[1e-5, -2e-5, 3e-6]])
 
     def h(v):
-        return km.measure_batch(v[None], vis, 0.5, True, 1.0, True, alpha, ND, NDD, False)[0][0]
+        return km.measure_batch(v[None], km.StepModel(vis, 0.5, True, 1.0, True, ND, NDD), alpha, False)[0][0]
 
-    _, Hval = km.measure_batch(x, vis, 0.5, True, 1.0, True, alpha, ND, NDD, True)
+    _, Hval = km.measure_batch(x, km.StepModel(vis, 0.5, True, 1.0, True, ND, NDD), alpha, True)
     H = km.dense(Hval, km.measurement_columns(n, vis, 9, True), n)[0]
     fd = np.empty_like(H)
     for j in range(n):

@@ -92,7 +92,7 @@ def test_measurement_matches_numpy_h_of_the_chart_times_S(name, disparity, pseud
     code, ref = CHARTS[name]
     x, e, alpha = case()
     B, n = x.shape
-    hx, Hval = kch.measure_batch(code, x, e, VIS, 0.7, disparity, focal, pseudo, alpha, ND, NDD, True)
+    hx, Hval = kch.measure_batch(code, x, e, km.StepModel(VIS, 0.7, disparity, focal, pseudo, ND, NDD), alpha, True)
     xc = ref.chart(x, e)
     h_np = [camera.h_features(xc, 0.7, disparity, focal)[:, VIS].reshape(B, -1)]
     H_np = [jacobians.H_features(xc, 0.7, disparity, focal)[:, VIS].reshape(B, -1, n)]
@@ -104,7 +104,8 @@ def test_measurement_matches_numpy_h_of_the_chart_times_S(name, disparity, pseud
     H = kch.dense(code, Hval, kch.measurement_columns(code, n - 1, VIS, 9 if disparity else 8, pseudo), n - 1)
     scale = np.max(np.abs(H_np), axis=-1, keepdims=True)  # per row: numpy's H S leaves round-off on delta
     assert np.max(np.abs(H - H_np) / scale) < 1e-12
-    h_only, _ = kch.measure_batch(code, x, e, VIS, 0.7, disparity, focal, pseudo, alpha, ND, NDD, False)
+    model = km.StepModel(VIS, 0.7, disparity, focal, pseudo, ND, NDD)
+    h_only, _ = kch.measure_batch(code, x, e, model, alpha, False)
     assert np.array_equal(h_only, hx)
 
 
@@ -115,9 +116,10 @@ def test_measurement_jacobian_finite_differences(name):
     ne = e.shape[-1]
 
     def h(v):
-        return kch.measure_batch(code, x, v[None], VIS, 0.5, True, 1.0, True, alpha, ND, NDD, False)[0][0]
+        model = km.StepModel(VIS, 0.5, True, 1.0, True, ND, NDD)
+        return kch.measure_batch(code, x, v[None], model, alpha, False)[0][0]
 
-    _, Hval = kch.measure_batch(code, x, e, VIS, 0.5, True, 1.0, True, alpha, ND, NDD, True)
+    _, Hval = kch.measure_batch(code, x, e, km.StepModel(VIS, 0.5, True, 1.0, True, ND, NDD), alpha, True)
     H = kch.dense(code, Hval, kch.measurement_columns(code, ne, VIS, 9, True), ne)[0]
     assert np.all(np.abs(H - fd(h, e[0])) <= 1e-6 * np.max(np.abs(H), axis=1, keepdims=True))
 
@@ -155,7 +157,7 @@ def test_aligned_feature_rows_do_not_see_a_rotation_of_the_body_frame():
     """``H_e`` of the aligned chart: zero (not round-off) on ``delta`` in the image rows; the pseudo rows see it."""
     x, e, alpha = case(B=1)
     ne = e.shape[-1]
-    _, Hval = kch.measure_batch(1, x, e, VIS, 0.5, True, 1.0, True, alpha, ND, NDD, True)
+    _, Hval = kch.measure_batch(1, x, e, km.StepModel(VIS, 0.5, True, 1.0, True, ND, NDD), alpha, True)
     H = kch.dense(1, Hval, kch.measurement_columns(1, ne, VIS, 9, True), ne)[0]
     assert np.all(H[: 9 * VIS.size, al.DELTA] == 0.0)
     assert np.abs(H[9 * VIS.size :, al.DELTA]).max() > 0.0
@@ -171,6 +173,6 @@ def test_attitude_chart_hand_values():
     np.testing.assert_allclose(kch.chart_batch(2, x, a)[0, st.QUAT], np.array([1.0, 0.1, 0.0, 0.0]) / np.sqrt(1.01),
                                rtol=0, atol=1e-16)  # fmt: skip
     np.testing.assert_array_equal(kch.error_map_batch(2, x)[0, 9:12, 9:13], [[0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 2]])
-    _, Hval = kch.measure_batch(2, x, e, VIS, 0.5, True, 1.0, True, alpha, ND, NDD, True)
+    _, Hval = kch.measure_batch(2, x, e, km.StepModel(VIS, 0.5, True, 1.0, True, ND, NDD), alpha, True)
     H = kch.dense(2, Hval, kch.measurement_columns(2, e.shape[-1], VIS, 9, True), e.shape[-1])[0]
     assert np.abs(H[: 9 * VIS.size, es.ATT]).max() > 0.0 and np.abs(H[9 * VIS.size :, es.ATT]).max() > 0.0

@@ -64,6 +64,23 @@ def test_borrow_of_a_tuple_borrows_each_array():
 
 
 @njit(cache=False)
+def _borrow_named(model):
+    """A named tuple of an array and scalars (``model.StepModel``) borrowed: its array's meminfo, its scalars."""
+    mb = borrow(model)
+    mb.vis[0] = 5
+    return _meminfo(mb.vis), mb.baseline, mb.disparity, mb.focal, mb.pseudo, mb.nd, mb.ndd
+
+
+def test_borrow_of_a_named_tuple_borrows_its_arrays_and_keeps_its_scalars():
+    from stereopose_mc.core.kernels.model import StepModel
+
+    vis = np.arange(3, dtype=np.int64)
+    got = _borrow_named(StepModel(vis, 0.5, True, 800.0, False, 1e-3, -2e-7))
+    assert got == (0, 0.5, True, 800.0, False, 1e-3, -2e-7)
+    assert vis[0] == 5  # written through the borrowed array
+
+
+@njit(cache=False)
 def _kept(m):
     """An owner allocated here, borrowed, then ``m`` arrays of its size allocated and filled with zeros before its
     borrowed view is read: ``keep`` holds the owner to the end, so the view still reads the owner's 7s."""

@@ -303,8 +303,8 @@ def test_measure_h_batch_equals_the_numpy_model():
     np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-13 * np.abs(ref).max())
     vis = np.flatnonzero(exact.visible[k]).astype(np.int64)
     _, nd, ndd = compiled._leader(setup.orbit, float(truth.t[k]))
-    hx, _ = km.measure_batch(x, vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo,
-                             np.ascontiguousarray(alpha[trials]), float(nd[0]), float(ndd[0]), False)  # fmt: skip
+    model = km.StepModel(vis, setup.baseline, setup.disparity, setup.focal, setup.pseudo, float(nd[0]), float(ndd[0]))
+    hx, _ = km.measure_batch(x, model, np.ascontiguousarray(alpha[trials]), False)
     np.testing.assert_array_equal(got, hx)
 
 

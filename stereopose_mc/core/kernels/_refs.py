@@ -42,11 +42,13 @@ def _borrowed(context, builder, ty, value):
 
 @intrinsic
 def borrow(typingctx, a):
-    """``a`` (an array, or a tuple of arrays) without reference counting: the same data, shape and strides,
-    no owner. Valid while the owner is referenced (module docstring)."""
+    """``a`` (an array, or a tuple or named tuple of arrays and scalars, e.g. ``model.StepModel``) without reference
+    counting: the same data, shape and strides, no owner; a tuple's scalars as they are. Valid while the owner is
+    referenced (module docstring)."""
     if isinstance(a, types.Array):
         arrays = False
-    elif isinstance(a, types.BaseTuple) and len(a) and all(isinstance(t, types.Array) for t in a):
+    elif (isinstance(a, types.BaseTuple) and any(isinstance(t, types.Array) for t in a)
+          and all(isinstance(t, (types.Array, types.Number, types.Boolean)) for t in a)):  # fmt: skip
         arrays = True
     else:
         return None
@@ -56,7 +58,8 @@ def borrow(typingctx, a):
         ty, value = signature.args[0], args[0]
         if not arrays:
             return _borrowed(context, builder, ty, value)
-        parts = [_borrowed(context, builder, t, builder.extract_value(value, i)) for i, t in enumerate(ty)]
+        parts = [builder.extract_value(value, i) for i in range(len(ty))]
+        parts = [_borrowed(context, builder, t, v) if isinstance(t, types.Array) else v for t, v in zip(ty, parts)]
         return context.make_tuple(builder, ty, parts)
 
     return sig, codegen

@@ -41,7 +41,7 @@ from ._refs import borrow, keep
 from .attitude import _qmul, _quat_times, _small_quaternion, _small_quaternion_jacobian
 from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, E_SHIFT, K_SIZE, OMEGA,
                       POINTS, QUAT, R_K, REDUCED, RHO, RHO_DOT, VEC, e_n_points)  # fmt: skip
-from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, row_columns
+from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, n_measurements, row_columns
 from .model import n_points as _n_points
 from .rows import _mirror_lower
 
@@ -426,7 +426,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
 
 
 @njit(**_JIT)
-def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D, dD):
+def _measure_aligned(xr, e, model, alpha, compute_jac, hx, Hval, xt, D, dD):
     """``h(x_ref [+] e)`` and the row-sparse ``H_e`` of one trial (module docstring); ``xt``: the charted state.
 
     From ``model._measure_one``'s full-state rows at ``xt``: a feature's ``[rho, rho_dot,
@@ -442,12 +442,11 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
     R = ws[9:18].reshape((3, 3))
     v = ws[18:21]
     _chart(xr, e, xt, Dref, R, v)
-    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    _measure_one(xt, model, alpha, compute_jac, hx, Hval, D, dD)
     if not compute_jac:
         keep(own)
         return
-    C = 9 if disparity else 8
-    nf = vis.shape[0] * C
+    nf = n_measurements(model.vis.shape[0], model.disparity, False)  # the features' rows
     w0, w1, w2 = xt[OMEGA], xt[OMEGA + 1], xt[OMEGA + 2]
     WD = ws[21:30].reshape((3, 3))  # [omega x] D_ref / N
     for j in range(3):
@@ -469,7 +468,7 @@ def _measure_aligned(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, 
                                        - (h[d] * WD[0, j] + h[d + 1] * WD[1, j] + h[d + 2] * WD[2, j]))  # fmt: skip
         for k in range(HR_VIRTUAL + VEC, NNZ):
             Hval[r, k] = 0.0
-    if pseudo:
+    if model.pseudo:
         Sq = ws[46:58].reshape((4, 3))
         LSq = ws[58:70].reshape((4, 3))
         _small_quaternion_jacobian(e[DELTA:D_END], Sq)

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 
 from ..layout import E_OMEGA, E_POINTS, E_ROT, E_SHIFT, K_SIZE, POINTS, QUAT, VEC
-from .model import H_POINT, NNZ, PS_K, PS_QUAT, Q_END, _measure_one, row_columns
+from .model import H_POINT, NNZ, PS_K, PS_QUAT, Q_END, _measure_one, n_measurements, row_columns
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -151,8 +151,7 @@ def _error_map(xr, T):
 
 
 @njit(**_JIT)
-def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D,
-                      dD):  # fmt: skip
+def _measure_attitude(xr, e, model, alpha, compute_jac, hx, Hval, xt, D, dD):
     """``h(x_ref [+] eps)`` and the row-sparse ``H_eps`` of one trial (module docstring); ``xt``: the charted state.
 
     From ``model._measure_one``'s full-state rows at ``xt``: the quaternion columns ``H_q`` become
@@ -160,15 +159,14 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
     the left.
     """
     _chart(xr, e, xt)
-    _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+    _measure_one(xt, model, alpha, compute_jac, hx, Hval, D, dD)
     if not compute_jac:
         return
     Sq = np.empty((4, 3))
     RSq = np.empty((4, 3))
     _small_quaternion_jacobian(e[ATT:A_END], Sq)
     _quat_times(xr[QUAT:Q_END], Sq, RSq, -1.0)
-    C = 9 if disparity else 8
-    nf = vis.shape[0] * C
+    nf = n_measurements(model.vis.shape[0], model.disparity, False)  # the features' rows
     h = np.empty(NNZ)
     for r in range(nf):  # [rho, rho_dot, omega (9), q (4), P_i (3)] -> [.. (9), a (3), P_i (3), pad]
         for k in range(NNZ):
@@ -179,7 +177,7 @@ def _measure_attitude(xr, e, vis, baseline, disparity, focal, pseudo, alpha, nd,
             Hval[r, HE_POINT + j] = h[H_POINT + j]
         for k in range(HE_POINT + VEC, NNZ):
             Hval[r, k] = 0.0
-    if pseudo:
+    if model.pseudo:
         _pseudo_rows_rotated(Hval, nf, RSq, h)
 
 

@@ -22,7 +22,7 @@ from numba import njit
 from ..layout import CHART_ALIGNED
 from . import aligned as ka
 from . import attitude as kt
-from .model import NNZ
+from .model import NNZ, n_measurements
 from .model import dense as dense_rows
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -84,11 +84,11 @@ def error_map_batch(chart, x_ref):
 
 
 @njit(**_JIT)
-def measure_batch(chart, x_ref, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
-    """``h(x_ref [+] e) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_e`` (``measurement_columns``)."""
+def measure_batch(chart, x_ref, e, model, alpha, compute_jac):
+    """``h(x_ref [+] e) (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H_e`` (``measurement_columns``);
+    ``model``: a ``model.StepModel``, ``alpha (B, 3)``."""
     B, n = x_ref.shape
-    C = 9 if disparity else 8
-    m = vis.shape[0] * C + (3 if pseudo else 0)
+    m = n_measurements(model.vis.shape[0], model.disparity, model.pseudo)
     hx = np.empty((B, m))
     Hval = np.zeros((B, m, NNZ))
     xt = np.empty(n)
@@ -96,11 +96,9 @@ def measure_batch(chart, x_ref, e, vis, baseline, disparity, focal, pseudo, alph
     dD = np.empty((4, 3, 3))
     for b in range(B):
         if chart == CHART_ALIGNED:
-            ka._measure_aligned(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                                compute_jac, hx[b], Hval[b], xt, D, dD)  # fmt: skip
+            ka._measure_aligned(x_ref[b], e[b], model, alpha[b], compute_jac, hx[b], Hval[b], xt, D, dD)
         else:
-            kt._measure_attitude(x_ref[b], e[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                                 compute_jac, hx[b], Hval[b], xt, D, dD)  # fmt: skip
+            kt._measure_attitude(x_ref[b], e[b], model, alpha[b], compute_jac, hx[b], Hval[b], xt, D, dD)
     return hx, Hval
 
 

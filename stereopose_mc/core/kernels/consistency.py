@@ -38,6 +38,7 @@ records at every step, without numpy's per-call cost on small arrays.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
@@ -672,9 +673,19 @@ def _take(buf, at, c, a, b):
     return buf[at : at + c * a * b].reshape((c, a, b)), at + c * a * b
 
 
+# The scratch arrays of ``_nees_one`` (``_nees_scratch``), by name: the matrices ``ne x ne`` (Mi, Pa, Lr, C, L, Lb,
+# Y), ``ne x n`` (Tm, TP), ``n x ne`` (Sa, Pt), ``m x m`` (Uf, Rf: P's own upper factor and its root J U), the vectors
+# of ``ne`` (e0 = 0, e, eps, w, u), the NEES blocks' sparse rows (cnt, cols, vals), 3 x 3 (D, Dt, R), 4-vectors
+# (dq, tmp), 6 x 3 (v3, Wp), 3 x ne (U, Sp), 3 x n (Sm), 5 x n (W5)
+NeesScratch = namedtuple("NeesScratch", ("Tm", "Sa", "Mi", "e0", "TP", "Pt", "Sm", "Pa", "Uf", "Rf", "Lr", "e", "eps",
+                                         "cnt", "cols", "vals", "C", "L", "Lb", "w", "U", "u", "Y", "D", "Dt", "R",
+                                         "dq", "tmp", "v3", "Sp", "Wp", "W5"))  # fmt: skip
+
+
 @njit(**_JIT)
 def _nees_scratch(n, m):
-    """The scratch arrays of ``_nees_one`` for a state of ``n`` and a covariance of ``m`` columns: views into one
+    """The scratch arrays of ``_nees_one`` (a ``NeesScratch``) for a state of ``n`` and a covariance of ``m``
+    columns: views into one
     float and one integer buffer (two allocations instead of 32: the update kernels make it at every call that
     evaluates NEES), grouped by shape."""
     ne = n - 1
@@ -696,9 +707,10 @@ def _nees_scratch(n, m):
     vec[0, 0, :] = 0.0
     vals[0, :, :] = 0.0
     v, q = vec[0], q4[0]
-    return (tn[0], nt[0], sq[0], v[0], tn[1], nt[1], sm[0], sq[1], mm[0], mm[1], sq[2], v[1], v[2], ints[:ne],
-            ints[ne:].reshape((ne, k)), vals[0], sq[3], sq[4], sq[5], v[3], s3[0], v[4], sq[6], d3[0], d3[1], d3[2],
-            q[0], q[1], s6[0], s3[1], s6[1], w5[0])  # fmt: skip
+    return NeesScratch(Tm=tn[0], Sa=nt[0], Mi=sq[0], e0=v[0], TP=tn[1], Pt=nt[1], Sm=sm[0], Pa=sq[1], Uf=mm[0],
+                       Rf=mm[1], Lr=sq[2], e=v[1], eps=v[2], cnt=ints[:ne], cols=ints[ne:].reshape((ne, k)),
+                       vals=vals[0], C=sq[3], L=sq[4], Lb=sq[5], w=v[3], U=s3[0], u=v[4], Y=sq[6], D=d3[0], Dt=d3[1],
+                       R=d3[2], dq=q[0], tmp=q[1], v3=s6[0], Sp=s3[1], Wp=s6[1], W5=w5[0])  # fmt: skip
 
 
 @njit(**_JIT)
@@ -724,8 +736,10 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
     it on each posterior as soon as it is formed (``core.kernels.update``: ``P+`` and its square root still in cache;
     the full state's through ``_nees_given`` first, the same numbers).
     """
-    Tm, Sa, Mi, e0, TP, Pt, Sm, Pa, Uf, Rf, Lr, e, eps, cnt, cols, vals, C, L, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, \
-        Sp, Wp, W5 = ws  # fmt: skip
+    Tm, Sa, Mi, e0, TP, Pt, Sm, Pa, Uf, Rf = ws.Tm, ws.Sa, ws.Mi, ws.e0, ws.TP, ws.Pt, ws.Sm, ws.Pa, ws.Uf, ws.Rf
+    Lr, e, eps, cnt, cols, vals, C, L, Lb = ws.Lr, ws.e, ws.eps, ws.cnt, ws.cols, ws.vals, ws.C, ws.L, ws.Lb
+    w, U, u, Y, D, Dt, R, dq, tmp = ws.w, ws.U, ws.u, ws.Y, ws.D, ws.Dt, ws.R, ws.dq, ws.tmp
+    v3, Sp, Wp, W5 = ws.v3, ws.Sp, ws.Wp, ws.W5
     n = xh.shape[0]
     ne = n - 1
     N = _n_points(n)
@@ -788,7 +802,7 @@ def nees_batch(x_hat, P, x_true, attitude, Rg):
     ws = borrow(own)
     x_hat, P, x_true, Rg, ob = borrow((x_hat, P, x_true, Rg, out))
     for t in range(B):
-        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws[9], have, ob[t], ws)
+        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws.Rf, have, ob[t], ws)
     keep(own)
     return out, pd
 

@@ -24,12 +24,14 @@ Structure that the kernels use (and the dense numpy code ignores):
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
 
-from ..layout import COMMON, K_SIZE, OMEGA, POINTS, QUAT, QUAT_SIZE, R_K, REDUCED, RHO, RHO_DOT, TRANSLATION, VEC
-from ..layout import n_points as _layout_n_points
+from .. import layout
+from ..layout import (COMMON, K_SIZE, OMEGA, POINTS, PSEUDO_ROWS, QUAT, QUAT_SIZE, R_K, REDUCED, RHO, RHO_DOT,
+                      TRANSLATION, VEC)  # fmt: skip
 from ._refs import borrow, keep
 
 NNZ = COMMON + VEC  # non-zero columns of one measurement row: rho, rho_dot, omega, q and one point
@@ -38,7 +40,17 @@ PS_OMEGA, PS_QUAT, PS_K = 0, VEC, VEC + QUAT_SIZE  # a pseudo row's omega, q, k 
 PS_NNZ = PS_K + K_SIZE
 Q_END = QUAT + QUAT_SIZE
 
-n_points = njit(inline="always", error_model="numpy")(_layout_n_points)  # core.layout's, inside the kernels
+# core.layout's helpers, inside the kernels
+n_points = njit(inline="always", error_model="numpy")(layout.n_points)
+n_channels = njit(inline="always", error_model="numpy")(layout.n_channels)
+n_measurements = njit(inline="always", error_model="numpy")(layout.n_measurements)
+
+# The measurement model of one step, the same for every trial: the visible features ``vis`` (int64 indices), the
+# camera (``baseline``, ``disparity``: whether the disparity channel is measured, ``focal``), whether the inertia
+# pseudo rows are measured (``pseudo``) and the leader's ``nu'``, ``nu''`` they read (``nd``, ``ndd``). One argument
+# for the kernels (a Numba named tuple: a struct passed by value); the per-trial measured acceleration ``alpha`` goes
+# beside it. ``filters.compiled.step_model`` builds it with the types the kernels are compiled for.
+StepModel = namedtuple("StepModel", ("vis", "baseline", "disparity", "focal", "pseudo", "nd", "ndd"))
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -482,7 +494,7 @@ def _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hv
     of these rows cost more than their arithmetic. The features are looped over here, not by the caller: each
     array a compiled function takes costs the same two operations per call.
     """
-    C = 9 if disparity else 8
+    C = n_channels(disparity)
     for f in range(vis.shape[0]):
         i = vis[f]
         o = f * C
@@ -617,7 +629,7 @@ def row_columns(vis, channels, before, point0, after, pseudo_cols, pseudo):
     its load at start-up)."""
     vis = np.asarray(vis, dtype=np.int64)
     nf = vis.size * channels
-    cols = np.zeros((nf + (3 if pseudo else 0), NNZ), np.int64)
+    cols = np.zeros((nf + (PSEUDO_ROWS if pseudo else 0), NNZ), np.int64)
     nb, na = len(before), len(after)
     cols[:nf, :nb] = before
     cols[:nf, nb : nb + 3] = point0 + 3 * np.repeat(vis, channels)[:, None] + np.arange(3)
@@ -636,53 +648,49 @@ def measurement_columns(n, vis, channels, pseudo):
 
 
 @njit(**_JIT)
-def _measure_one(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD):
-    """``h`` and row-sparse ``H`` of one trial (``relnav.measurement_model``)."""
-    C = 9 if disparity else 8
+def _measure_one(x, model, alpha, compute_jac, hx, Hval, D, dD):
+    """``h`` and row-sparse ``H`` of one trial (``relnav.measurement_model``); ``model``: a ``StepModel``."""
     _dcm_derivative(x[QUAT:Q_END], D, dD)
-    nv = vis.shape[0]
+    nf = n_measurements(model.vis.shape[0], model.disparity, False)  # the features' rows; then the pseudo rows
     own = np.empty((12, 7))  # the rows' scratch: one allocation per call, not per feature
     ws = borrow(own)  # (_refs; kept to the end)
-    _feature_rows(x, vis, baseline, disparity, focal, D, dD, compute_jac, hx, Hval, ws)
-    if pseudo:
-        _pseudo_rows(x, alpha, nd, ndd, D, dD, compute_jac, hx[nv * C : nv * C + 3], Hval[nv * C : nv * C + 3],
-                     ws.ravel())  # fmt: skip
+    _feature_rows(x, model.vis, model.baseline, model.disparity, model.focal, D, dD, compute_jac, hx, Hval, ws)
+    if model.pseudo:
+        _pseudo_rows(x, alpha, model.nd, model.ndd, D, dD, compute_jac, hx[nf : nf + PSEUDO_ROWS],
+                     Hval[nf : nf + PSEUDO_ROWS], ws.ravel())  # fmt: skip
     keep(own)
 
 
 @njit(**_JIT)
-def measure_batch(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac):
+def measure_batch(x, model, alpha, compute_jac):
     """``h (B, m)`` and the values ``(B, m, 16)`` of the row-sparse ``H`` (columns: ``measurement_columns``).
 
-    Rows: per visible feature ``vis`` its 8 (9) channels, then the 3 pseudo rows with
-    the per-trial measured acceleration ``alpha (B, 3)``.
+    Rows (``core.layout.n_measurements``): per visible feature ``model.vis`` its 8 (9) channels, then the 3 pseudo
+    rows with the per-trial measured acceleration ``alpha (B, 3)``.
     """
     B, n = x.shape
-    C = 9 if disparity else 8
-    m = vis.shape[0] * C + (3 if pseudo else 0)
+    m = n_measurements(model.vis.shape[0], model.disparity, model.pseudo)
     hx = np.empty((B, m))
     Hval = np.zeros((B, m, NNZ))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
-        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, compute_jac, hx[b], Hval[b],
-                     D, dD)  # fmt: skip
+        _measure_one(x[b], model, alpha[b], compute_jac, hx[b], Hval[b], D, dD)
     return hx, Hval
 
 
 @njit(**_JIT)
-def measure_h_batch(x, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd):
+def measure_h_batch(x, model, alpha):
     """``h (B, m)`` of ``measure_batch`` alone (no ``H``: one scratch row block, not ``B x m x 16`` values), for
     the sigma points of the UKF (``2 n + 1`` states per trial)."""
     B, n = x.shape
-    C = 9 if disparity else 8
-    m = vis.shape[0] * C + (3 if pseudo else 0)
+    m = n_measurements(model.vis.shape[0], model.disparity, model.pseudo)
     hx = np.empty((B, m))
     Hval = np.zeros((m, NNZ))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
     for b in range(B):
-        _measure_one(x[b], vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, False, hx[b], Hval, D, dD)
+        _measure_one(x[b], model, alpha[b], False, hx[b], Hval, D, dD)
     return hx
 
 

@@ -100,8 +100,7 @@ def _linearization(hx, Hval, cols, yb, mask, rws, Laug, Hw, rw, A, g, ws, wi, up
 
 
 @njit(**_JIT)
-def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt, D,
-                dD):  # fmt: skip
+def _measure_at(chart, xp, e, model, alpha, compute_jac, hx, Hval, xt, D, dD):
     """``h`` and the row-sparse ``H`` of one trial at ``x- [+] e`` in the filter's coordinates.
 
     ``chart`` 0: the full state, ``xt = x- + e``, ``H`` of ``model._measure_one``; 1: the aligned
@@ -111,13 +110,11 @@ def _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd
     if chart == CHART_FULL:
         for i in range(xp.shape[0]):
             xt[i] = xp[i] + e[i]
-        _measure_one(xt, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, D, dD)
+        _measure_one(xt, model, alpha, compute_jac, hx, Hval, D, dD)
     elif chart == CHART_ALIGNED:
-        _measure_aligned(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval, xt,
-                         D, dD)  # fmt: skip
+        _measure_aligned(xp, e, model, alpha, compute_jac, hx, Hval, xt, D, dD)
     else:
-        _att._measure_attitude(xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, Hval,
-                               xt, D, dD)  # fmt: skip
+        _att._measure_attitude(xp, e, model, alpha, compute_jac, hx, Hval, xt, D, dD)
 
 
 @njit(**_JIT)
@@ -143,8 +140,7 @@ def _with_virtual(chart, Maug):
         virtual_rows(Maug[:n], Maug)
 
 
-def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
-                     x_true=None, attitude=False):  # fmt: skip
+def ekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, x_true=None, attitude=False):
     """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
 
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
@@ -163,9 +159,8 @@ def ekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, 
     ``iekf_update_batch``'s); in the full chart the quaternion of ``x+`` is renormalized.
     """
     xt = np.empty((0, x.shape[1])) if x_true is None else x_true
-    xo, Po, nu, nis, _, _, ok, Ro, ev = iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
-                                                          alpha, nd, ndd, cols, chart, 0.0, 1, CONTROL_NONE, STOP_PRIOR, 0, xt,
-                                                          attitude)  # fmt: skip
+    xo, Po, nu, nis, _, _, ok, Ro, ev = iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, 0.0, 1,
+                                                          CONTROL_NONE, STOP_PRIOR, 0, xt, attitude)  # fmt: skip
     return xo, Po, nu, nis, ok, Ro, ev
 
 
@@ -178,12 +173,11 @@ def _normalize_q(x):
 
 
 @njit(**_JIT)
-def _cost_at(chart, z, xp, L, yb, rws, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, e, xt, hx,
-             H, D, dD, compute_jac, cen, N, tmp):  # fmt: skip
+def _cost_at(chart, z, xp, L, yb, rws, mask, model, alpha, e, xt, hx, H, D, dD, compute_jac, cen, N, tmp):
     """MAP cost ``|z|^2 + |R^-1/2 (y - h(x- [+] L z))|^2``; ``h`` in ``hx``, and ``H`` too when ``compute_jac``
     (``cen``: ``L = T^-1 L'``, ``_sqrt_mul`` through ``tmp``)."""
     _sqrt_mul(L, z, e, cen, N, tmp)
-    _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, compute_jac, hx, H, xt, D, dD)
+    _measure_at(chart, xp, e, model, alpha, compute_jac, hx, H, xt, D, dD)
     c = 0.0
     for i in range(z.shape[0]):
         c += z[i] * z[i]
@@ -201,8 +195,8 @@ def _keep_linearization(A, Afin):
 
 
 @njit(**_JIT)
-def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo, alpha, nd, ndd, cols, chart,
-                      tol, max_iter, control, stopping, max_halvings, x_true, attitude):  # fmt: skip
+def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter, control, stopping, max_halvings,
+                      x_true, attitude):  # fmt: skip
     """Gauss-Newton IEKF in whitened coordinates ``x = x- [+] L z`` (``kalman.iekf_update``), per trial.
 
     ``chart`` as in ``ekf_update_batch`` (1: the iterates are ``aligned.chart(x-, L z)``, ``P`` that
@@ -277,15 +271,16 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
     # The loop works on borrowed arrays (``_refs.borrow``: no atomic reference counting in its views and calls). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
     own = (Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T,
            D, dD)  # fmt: skip
-    x, P, y, R, mask, vis, alpha, cols, x_true = borrow((x, P, y, R, mask, vis, alpha, cols, x_true))
+    x, P, y, R, mask, alpha, cols, x_true = borrow((x, P, y, R, mask, alpha, cols, x_true))
+    model = borrow(model)  # (its array, vis, borrowed; its scalars as they are)
     xo, Po, nu, nis, its, conv, ok, Ro, ev = borrow(outs)
     Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T, D, \
         dD = borrow(own)  # fmt: skip
     L = Laug[:n]
     if judged:  # (only then: its views cost time to make and release, which a single trial's step would pay)
         nws = _nees_scratch(nx, n)  # (referenced through the loop: _nees_one reads it)
-        wf = borrow((nws[0], nws[11], nws[31], nws[12], nws[16], nws[18], nws[19], nws[23], nws[24], nws[25], nws[26],
-                     nws[27], nws[28]))  # _one_full's: Tm, e, W5, eps, C, Lb, w, D, Dt, R, dq, tmp, v3
+        wf = borrow((nws.Tm, nws.e, nws.W5, nws.eps, nws.C, nws.Lb, nws.w, nws.D, nws.Dt, nws.R, nws.dq, nws.tmp,
+                     nws.v3))  # _one_full's scratch, the arguments of _nees_given after out
     for b in range(B):
         xp = x[b]
         yb = y[b]
@@ -314,8 +309,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _with_virtual(chart, Laug)
         for i in range(n):
             e[i] = 0.0
-        _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval, xt,
-                    D, dD)  # fmt: skip
+        _measure_at(chart, xp, e, model, alpha[b], True, hx, Hval, xt, D, dD)
         _linearization(hx, Hval, cols, yb, mk, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, Np)
         for r in range(m):
             nu[b, r] = yb[r] - hx[r]
@@ -382,8 +376,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                     for i in range(n):
                         zt[i] = z[i] + a * d[i]
                     jac = jac_full and _h == 0
-                    ct = _cost_at(chart, zt, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd,
-                                  ndd, e, xt, hx, Hval if jac else Hdummy, D, dD, jac, cen, Np, g2)  # fmt: skip
+                    ct = _cost_at(chart, zt, xp, L, yb, rws, mk, model, alpha[b], e, xt, hx, Hval if jac else Hdummy,
+                                  D, dD, jac, cen, Np, g2)  # fmt: skip
                     if math.isfinite(ct) and ct <= cost:
                         accepted = True
                         have_jac = jac
@@ -397,8 +391,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                         zn[i] = z[i]
             elif control == CONTROL_LM:  # Levenberg-Marquardt: the damped step, kept if the MAP cost does not increase
                 fresh = False  # LA is the factor of A + lam I
-                ct = _cost_at(chart, zn, xp, L, yb, rws, mk, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd,
-                              e, xt, hx, Hdummy, D, dD, False, cen, Np, g2)  # fmt: skip
+                ct = _cost_at(chart, zn, xp, L, yb, rws, mk, model, alpha[b], e, xt, hx, Hdummy, D, dD, False, cen, Np,
+                              g2)  # fmt: skip
                 accepted = math.isfinite(ct) and ct <= cost
                 if accepted:
                     c_new = ct
@@ -447,8 +441,7 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
                 break
             if not have_jac:
                 _sqrt_mul(L, z, e, cen, Np, g2)
-                _measure_at(chart, xp, e, vis, baseline, disparity, focal, pseudo, alpha[b], nd, ndd, True, hx, Hval,
-                            xt, D, dD)  # fmt: skip
+                _measure_at(chart, xp, e, model, alpha[b], True, hx, Hval, xt, D, dD)
             _linearization(hx, Hval, cols, yb, mk, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, Np)
         if failed or not (fresh or _factor(Afin, LA)):
             ok[b] = False
@@ -464,9 +457,8 @@ def iekf_update_batch(x, P, y, R, mask, vis, baseline, disparity, focal, pseudo,
             _posterior_covariance_rev(L, LA, Po[b], Rb)  # its W = (M J)^T is P+'s square root J M^T
         if judged:
             st = -1
-            if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 32-array tuple
-                st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], wf[0], wf[1], wf[2], wf[3], wf[4], wf[5], wf[6],
-                                 wf[7], wf[8], wf[9], wf[10], wf[11], wf[12])  # fmt: skip
+            if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 32-array NeesScratch
+                st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], *wf)
             if st < 0:
                 st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nws) else 0
             ev[b, 8] = float(st)
