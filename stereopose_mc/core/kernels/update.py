@@ -143,6 +143,10 @@ def _with_virtual(chart, Maug):
 def ekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, x_true=None, attitude=False):
     """EKF update of every trial: ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x+ = x [+] K nu``, ``P+``.
 
+    ``model``: the step's ``model.StepModel`` (visible features, camera, pseudo rows), ``alpha (B, 3)`` the
+    trials' measured accelerations, ``cols`` the columns of the row-sparse ``H``, ``mask (B, m)`` the rows that
+    enter the update (module docstring).
+
     ``chart`` 0: ``x``, ``P (B, n, n)`` of the full state (``relnav.update``); 1: ``P (B, n-1, n-1)``
     of the aligned error state at ``x`` (``mekf.update``: prior ``e = 0``, ``H_e``, reset
     ``x+ = x [+] e+``); 2: the same in the attitude error state. Evaluated as one Gauss-Newton
