@@ -33,6 +33,7 @@ from scipy.linalg import expm
 
 from stereopose_mc.core import camera, dynamics, jacobians, state as st
 from stereopose_mc.core.inertia import h_pseudo
+from stereopose_mc.core.layout import n_measurements
 from stereopose_mc.core.orbit import leader_kinematics
 from stereopose_mc.filters import relnav
 from stereopose_mc.mc.trial import errors
@@ -92,7 +93,7 @@ def run_trials(x0_hat: np.ndarray, y_feat: np.ndarray, alpha: np.ndarray, visibl
     steps = 0
     Q = np.diag(fs.Q_diag)
     for j in range(T):
-        m0 = int(visible[1].sum()) * (9 if setup.disparity else 8) + (3 if setup.pseudo else 0)
+        m0 = n_measurements(int(visible[1].sum()), setup.disparity, setup.pseudo)
         ekf = RelNavEKF(n, m0, setup.orbit, setup.dt, fs.substeps)
         ekf.x = x0_hat[j][:, None].copy()
         ekf.P = np.diag(setup.P0_diag)
