@@ -126,7 +126,8 @@ FILTER_MEANINGS = {
     "taylor_order": "Order of the Taylor series of Φ.",
     "integration_substeps": "RK4 substeps per Δt in the prediction.",
     "iterated": "MEKF: run the IEKF's Gauss-Newton iterations (with `tolerance`, `max_iterations`, `step_control`, "
-                "`stopping`) in every update; false: plain EKF updates on the error state.",
+                "`stopping`) in every update; false (default): plain EKF updates on the error state, the classical "
+                "MEKF (docs/filters.md, which combination is which).",
     "alpha": "UKF sigma-point spread α (van der Merwe scaling).",
     "beta": "UKF prior-distribution parameter β (2 for a Gaussian).",
     "kappa": "UKF secondary scaling κ.",

@@ -713,7 +713,8 @@ def block_nees_case(run_dir: Path, n_trials: int) -> pd.DataFrame:
 
 ESTIMATOR_FILTERS = [
     {"type": "iekf"}, {"type": "iekf", "name": "iekf_full", "error_state": "full"},
-    {"type": "mekf"}, {"type": "mekf", "name": "mekf_attitude", "error_state": "attitude"},
+    {"type": "mekf"}, {"type": "mekf", "name": "mekf_iterated", "iterated": True},
+    {"type": "mekf", "name": "mekf_aligned_iterated", "error_state": "aligned", "iterated": True},
     {"type": "ekf"}, {"type": "ekf", "name": "ekf_iterated_first", "first_update": "iterated"},
     {"type": "ekf", "name": "ekf_full_iterated_first", "first_update": "iterated", "error_state": "full"},
     {"type": "ukf"}, {"type": "ukf", "name": "ukf_iterated_first", "first_update": "iterated"},

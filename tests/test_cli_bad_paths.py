@@ -114,9 +114,10 @@ def test_resume_with_more_trials_extends_the_run_and_says_so(quick_scenario, run
 
 
 def test_progress_on_resume_counts_finished_divergences_per_filter(tmp_path):
-    """Every trial diverges (a 1 mm bound): the first progress call of a resume already counts
-    the finished chunk's divergences, filter by filter."""
-    f = write_scenario(tmp_path / "div.yaml", trials=4, time=SHORT, divergence={"rho_m": 0.001})
+    """Every trial is lost (a NIS window test no filter passes): the first progress call of a resume already counts
+    the finished chunk's lost trials, filter by filter."""
+    f = write_scenario(tmp_path / "div.yaml", trials=4, time=SHORT,
+                       divergence={"nis_ratio": 1e-9, "nis_window_steps": 1, "nis_start_s": 0.0})  # fmt: skip
     from stereopose_mc.config import load_scenario
 
     s = load_scenario(f)

@@ -142,18 +142,29 @@ class Run:
         else:
             pt, tr = tables.columns_of(self.percentiles), tables.columns_of(self.trials)
         start = self.scenario.time.error_window_start_s
+        excl = self.scenario.divergence.exclude_inconsistent
         out = []
         for label in dict.fromkeys(pt["filter"].tolist()):
-            first = list(pt["filter"]).index(label)
-            n, nd = int(pt["trials"][first]), int(pt["diverged"][first])
-            out.append(f"\n{label}: per-trial mean errors over t >= {start:g} s, {n - nd}/{n} trials converged "
-                       f"({nd} diverged)")  # fmt: skip
+            rows = [i for i, f in enumerate(pt["filter"].tolist()) if f == label]
+            n = int(pt["trials"][rows[0]])
+            nl = int(pt["lost" if "lost" in pt else "diverged"][rows[0]])  # (runs before issue 33: diverged)
+            ni = int(pt["inconsistent"][rows[0]]) if "inconsistent" in pt else 0
+            kept = int(pt["trials"][[i for i in rows if pt["population"][i] == "converged"][0]])
+            out.append(f"\n{label}: per-trial mean errors over t >= {start:g} s, {kept} of {n} trials (the trials not "
+                       f"lost{' nor inconsistent' if excl else ''})")  # fmt: skip
+            out.append(f"  lost: {percentiles.rate_text(nl, n, False)}; "
+                       f"inconsistent (truth-based flag): {percentiles.rate_text(ni, n, False)}")  # fmt: skip
             out.append(percentiles.format_table(pt, label, "converged"))
-            if nd:
-                out += ["all trials (diverged = inf):", percentiles.format_table(pt, label, "all")]
+            if kept < n:
+                out += ["all trials (lost = inf):", percentiles.format_table(pt, label, "all")]
+        from ..outputs.summary import remedies, summarize
+
+        cfg = {f.label: f.model_dump() for f in self.scenario.filters}
+        for s in summarize(tr, list(dict.fromkeys(pt["filter"].tolist())), {k: v["type"] for k, v in cfg.items()}, excl):
+            out += [f"\nwhat to try: {r}" for r in remedies(s, cfg.get(s.label))]
         if "invalid" in tr and tr["invalid"].any():
             bad = len(set(tr["trial"][tr["invalid"].astype(bool)].tolist()))
-            out.append(f"\n{bad} trial(s) drew an invalid scenario (counted as diverged at step 0; "
+            out.append(f"\n{bad} trial(s) drew an invalid scenario (counted as lost at step 0; "
                        "column 'invalid', reason 'invalid draw: ...' in trials.parquet)")  # fmt: skip
         return "\n".join(out)
 

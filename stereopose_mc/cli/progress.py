@@ -15,7 +15,7 @@ def diverged_text(diverged: dict[str, int]) -> str:
 
 
 class _Plain:
-    """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, diverged iekf 1, ekf 3``."""
+    """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, lost iekf 1, ekf 3``."""
 
     def __init__(self, label: str, every_s: float = 10.0):
         self.label, self.every_s = label, every_s
@@ -35,7 +35,7 @@ class _Plain:
         eta = f"{(total - done) / rate:.0f} s" if rate > 0 else "?"
         pct = 100.0 * done / total if total else 100.0
         div = diverged_text(diverged)
-        print(f"{self.label}: {done}/{total} trials ({pct:.0f}%), {rate:.1f} trials/s, ETA {eta}, diverged {div}",
+        print(f"{self.label}: {done}/{total} trials ({pct:.0f}%), {rate:.1f} trials/s, ETA {eta}, lost {div}",
               file=sys.stderr, flush=True)  # fmt: skip
 
 
@@ -55,7 +55,7 @@ def progress_reporter(label: str, quiet: bool = False) -> Iterator:
         return
     cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TextColumn("trials"),
             TextColumn("{task.fields[rate]}"), TextColumn("ETA"), TimeRemainingColumn(), TimeElapsedColumn(),
-            TextColumn("diverged {task.fields[div]}")]  # fmt: skip
+            TextColumn("lost {task.fields[div]}")]  # fmt: skip
     with Progress(*cols, console=console, transient=False) as bar:
         task = bar.add_task(label, total=None, rate="", div="")
         t0 = time.perf_counter()

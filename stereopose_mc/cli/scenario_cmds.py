@@ -14,7 +14,9 @@ from .app import app, fail, load_or_exit
 @app.command()
 def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")) -> None:
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
-    (``FILE:LINE: key.path: message``) and exit code 2 if any file has one."""
+    (``FILE:LINE: key.path: message``) and exit code 2 if any file has one. Warnings (``FILE:LINE: key.path:
+    warning: ...``, config/warnings.py: a dispersion beyond P0 on the truth alone, features never in view) go
+    to stderr too and leave the exit code 0."""
     from ..studies import sweep as sw
     from ..config import ScenarioError, load_scenario
 
@@ -30,12 +32,27 @@ def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")
                 problems.extend(str(p) for p in exc.problems)
             continue
         try:
-            load_scenario(f)
+            scn = load_scenario(f)
             typer.echo(f"ok: {f}")
         except ScenarioError as exc:
             problems.extend(str(p) for p in exc.problems)
+            continue
+        for w in _warnings(f, scn):
+            typer.echo(str(w), err=True)
     if problems:
         fail(problems)
+
+
+def _warnings(path: Path, scn) -> list:
+    """``config.warnings`` of a valid scenario, and a warning when its cameras never see a feature point."""
+    from ..config.warnings import scenario_warnings
+    from ..mc import engine
+
+    extra = []
+    if not engine.prepare(scn).exact.visible.any():
+        extra.append((("camera",), "no feature point is ever in view of the cameras (field of view, range, occlusion, "
+                      "or points inside the body): the filters get no measurement and every trial will be lost"))  # fmt: skip
+    return scenario_warnings(path, scn, extra)
 
 
 @app.command()

@@ -193,11 +193,13 @@ class IEKFConfig(_GaussNewtonBase):
 
 
 class MEKFConfig(_GaussNewtonBase):
-    """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error."""
+    """Multiplicative EKF (docs/filters.md): error-state covariance, 3-parameter attitude error, a plain (not
+    iterated) update: the filter a GNC engineer calls the MEKF. ``error_state: aligned`` and ``iterated: true`` are
+    options (with both it is the default IEKF)."""
 
     type: Literal["mekf"]
-    error_state: Literal["aligned", "attitude"] = Field(default="aligned", description=_ERROR_STATE_DOC)
-    iterated: bool = Field(default=True, description="run the IEKF's Gauss-Newton iterations in the update")
+    error_state: Literal["aligned", "attitude"] = Field(default="attitude", description=_ERROR_STATE_DOC)
+    iterated: bool = Field(default=False, description="run the IEKF's Gauss-Newton iterations in the update")
 
     def setup(self, **common: Any) -> MEKFSetup:
         return MEKFSetup(**common, tolerance=self.tolerance, max_iterations=self.max_iterations if self.iterated else 1,

@@ -286,7 +286,7 @@ class CovarianceConfig(_Model):
 
 
 class DivergenceConfig(_Model):
-    """Bounds on the estimation error beyond which a trial is marked diverged."""
+    """When a trial is lost (the filter's own tests: it stops) or inconsistent (truth-based bounds: a flag only)."""
 
     rho_m: Pos = 1000.0
     rho_dot_mps: Pos = 100.0
@@ -307,12 +307,17 @@ class DivergenceConfig(_Model):
     sigma_ratio: Pos = Field(
         default=30.0,
         description="a trial is 'inconsistent' when a block's error stays above sigma_ratio times the filter's own "
-        "sigma for that block over nis_window_steps steps (docs/filters.md, Divergence)",
+        "sigma for that block over nis_window_steps steps (docs/filters.md, Lost and inconsistent trials)",
     )
     nees_factor: Pos = Field(
         default=10.0,
         description="a trial is 'inconsistent' when its gauge-projected NEES stays above nees_factor times the "
         "chi-square 99.9% bound over nis_window_steps steps",
+    )
+    exclude_inconsistent: bool = Field(
+        default=False,
+        description="leave inconsistent trials out of the accuracy statistics as lost ones are (the report says so "
+        "at the top); false: an inconsistent trial is a flag only, its errors count",
     )
 
 

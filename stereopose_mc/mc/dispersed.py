@@ -5,7 +5,7 @@ For a scenario with ``dispersions``, trial ``j``:
 1. draws its dispersed values (``sim.dispersions``; its own dispersion stream or the
    plan's row ``j``) and validates the dispersed scenario: an invalid draw (e.g. a
    perigee below the ground or a feature behind the cameras) makes an *invalid trial*:
-   every filter's row is kept, marked ``diverged`` at step 0 with the reason
+   every filter's row is kept, marked ``lost`` at step 0 with the reason
    ``invalid draw: ...`` and ``invalid = True``;
 2. gets its truth: all valid trials of the chunk are propagated together
    (``sim.truth.simulate_truth_batch``, trial axis first);
@@ -56,11 +56,24 @@ def _empty_run(label: str, B: int, K1: int) -> FilterRun:
 
 
 def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
-    for name in ("errors", "nees", "nis", "iterations", "converged", "diverged_step"):
+    for name in ("errors", "nees", "nis", "iterations", "converged", "lost_step", "inconsistent_step"):
         getattr(dst, name)[rows] = getattr(src, name)
-    for r, reason in zip(rows, src.diverged_reason):
-        dst.diverged_reason[r] = reason
+    for r, reason, why in zip(rows, src.lost_reason, src.inconsistent_reason):
+        dst.lost_reason[r], dst.inconsistent_reason[r] = reason, why
+    for name, a in src.nees_parts.items():  # every block NEES and the gauge-projected one, per trial
+        dst.nees_parts.setdefault(name, np.full(dst.nees.shape, np.nan))[rows] = a
+    for name in ("axis_err", "axis_sigma"):
+        a = getattr(src, name)
+        if a is not None:
+            if getattr(dst, name) is None:
+                setattr(dst, name, np.full(dst.nees.shape + a.shape[2:], np.nan))
+            getattr(dst, name)[rows] = a
+    if src.k_sigma_ratio is not None:
+        if dst.k_sigma_ratio is None:
+            dst.k_sigma_ratio = np.full((dst.nees.shape[0], 2), np.nan)
+        dst.k_sigma_ratio[rows] = src.k_sigma_ratio
     dst.nis_dof[rows] = src.nis_dof
+    dst.state_dim = src.state_dim
     dst.dof[rows] = src.nis_dof if src.dof is None else src.dof
     if src.gated is not None:
         dst.gated[rows] = src.gated
@@ -78,8 +91,8 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
     valid = np.array([not r for r in disp.invalid])
     for i in np.flatnonzero(~valid):
         for r in runs.values():
-            r.diverged_step[i] = 0
-            r.diverged_reason[i] = INVALID_PREFIX + disp.invalid[i]
+            r.lost_step[i] = 0
+            r.lost_reason[i] = INVALID_PREFIX + disp.invalid[i]
     rows = np.flatnonzero(valid)
     if rows.size:
         tsetups = [setup_of(disp.truth[i]) for i in rows]

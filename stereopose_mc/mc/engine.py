@@ -419,11 +419,12 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
                                           units=tables.COLUMN_UNITS)
         if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
             raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
-    pt = percentile_columns(trials, list(scn.percentiles))
+    excl = scn.divergence.exclude_inconsistent
+    pt = percentile_columns(trials, list(scn.percentiles), excl)
     store.atomic_write_text(out / "percentiles.csv", tables.csv_text(pt))
     _write_table(out / "percentiles.parquet", pt, _parquet_meta(scn, shash, "percentiles"))
     store.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
-                            + percentiles_markdown(pt, trials))  # fmt: skip
+                            + percentiles_markdown(pt, trials, excl))  # fmt: skip
     return trials, pt
 
 

@@ -10,7 +10,8 @@ import math
 
 import numpy as np
 
-from ..rundir.tables import ERROR_NAMES, NEES_PARTS, Columns, concat_columns, strings
+from ..core import errorstate as es
+from ..rundir.tables import AXES, ERROR_NAMES, NEES_PARTS, Columns, concat_columns, strings
 from .trial import ChunkResult
 
 
@@ -47,7 +48,7 @@ def trials_columns(chunk: ChunkResult, t: np.ndarray, window_start: float, seed:
     frames = []
     for r in chunk.runs:
         B = len(chunk.trials)
-        div = r.diverged_step >= 0
+        div = r.lost_step >= 0
         means = row_nanmean(np.moveaxis(r.errors[:, w], 1, -1))
         it_mean = row_nanmean(np.where(r.iterations[:, 1:] > 0, r.iterations[:, 1:], np.nan))
         nees_mean = row_nanmean(r.nees[:, w])
@@ -59,9 +60,13 @@ def trials_columns(chunk: ChunkResult, t: np.ndarray, window_start: float, seed:
             d[name] = means[:, j]
         for j, name in enumerate(ERROR_NAMES):
             d[f"final_{name}"] = final[:, j]
-        d["diverged"] = div
-        d["diverged_step"] = r.diverged_step.astype(np.int64)
-        d["diverged_reason"] = strings(r.diverged_reason)
+        d["lost"] = div
+        d["lost_step"] = r.lost_step.astype(np.int64)
+        d["lost_reason"] = strings(r.lost_reason)
+        d["inconsistent"] = r.inconsistent_step >= 0
+        d["inconsistent_step"] = r.inconsistent_step.astype(np.int64)
+        d["inconsistent_reason"] = strings(r.inconsistent_reason)
+        d["diverged"], d["diverged_step"], d["diverged_reason"] = d["lost"], d["lost_step"], d["lost_reason"]  # aliases
         d["iterations_mean"] = it_mean
         d["iekf_unconverged_steps"] = np.sum((r.iterations[:, 1:] > 0) & ~r.converged[:, 1:], axis=1).astype(np.int64)
         d["nees_mean"] = nees_mean
@@ -76,8 +81,23 @@ def trials_columns(chunk: ChunkResult, t: np.ndarray, window_start: float, seed:
                                                else np.full(B, np.nan))  # fmt: skip
         for name in NEES_PARTS:
             d[f"{name}_mean"] = row_nanmean(r.nees_parts[name][:, w]) if name in r.nees_parts else np.full(B, np.nan)
+        d["inside_3sigma"] = inside_3sigma(r, w)
+        dofs = es.nees_dof(r.state_dim) if r.state_dim else {"nees": -1, "nees_gauge": -1}
+        d["nees_dof"] = np.full(B, dofs["nees"], np.int64)  # so that any NEES can be normalised by a reader
+        d["nees_gauge_dof"] = np.full(B, dofs["nees_gauge"], np.int64)
         frames.append(d)
     return concat_columns(frames)
+
+
+def inside_3sigma(r, w: np.ndarray) -> np.ndarray:
+    """Per trial, the fraction of (step, axis) pairs of the window with ``|err_c| <= 3 sigma_c`` (NaN: none finite)."""
+    B = r.lost_step.shape[0]
+    if r.axis_err is None:
+        return np.full(B, np.nan)
+    e, s = r.axis_err[:, w], r.axis_sigma[:, w]
+    ok = np.isfinite(e) & np.isfinite(s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(ok.any(axis=(1, 2)), (ok & (np.abs(e) <= 3 * s)).sum(axis=(1, 2)) / ok.sum(axis=(1, 2)), np.nan)
 
 
 def _fault_columns(chunk: ChunkResult, r) -> dict[str, np.ndarray]:
@@ -123,5 +143,8 @@ def timeseries_columns(chunk: ChunkResult, t: np.ndarray, keep: np.ndarray | Non
         d["gated"] = (np.zeros(B * K1) if r.gated is None else r.gated[sel].reshape(-1)).astype(np.int16)
         for name in NEES_PARTS:
             d[name] = r.nees_parts[name][sel].reshape(-1) if name in r.nees_parts else np.full(B * K1, np.nan)
+        for pre, a in (("err", r.axis_err), ("sigma", r.axis_sigma)):
+            for j, c in enumerate(AXES):
+                d[f"{pre}_{c}"] = a[sel, :, j].reshape(-1) if a is not None else np.full(B * K1, np.nan)
         frames.append(d)
     return concat_columns(frames)

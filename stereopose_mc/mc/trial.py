@@ -2,17 +2,22 @@
 
 All trials of a chunk step through time together (arrays ``(B, n)``, ``(B, n, n)``).
 Each filter of the scenario sees the same initial estimate and the same measurements
-in a trial (paired comparison). A trial that diverges is frozen at the step it
-diverged: it is marked with the step and the reason, its later errors are NaN, and it
-never stops the others.
+in a trial (paired comparison). Two things can happen to a trial (docs/filters.md, Lost
+and inconsistent trials), and neither stops the others:
 
-Divergence (documented in docs/filters.md): a non-finite state or covariance, a
-covariance that is not positive definite (Cholesky fails), an error beyond the
-scenario's ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``), or
-a lost filter: from ``nis_start_s`` on, its NIS averaged over the last
-``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension, or
-(gated filters) its gate rejected at least ``gated_fraction`` of the features it was
-given at every one of those steps (a filter locked out by its own gate).
+- **lost**: what the filter itself can detect. A non-finite state or covariance, a
+  covariance that is not positive definite (Cholesky fails), a linear-algebra failure in
+  the update, or, from ``nis_start_s`` on, its NIS averaged over the last
+  ``nis_window_steps`` steps exceeds ``nis_ratio`` times the measurement dimension, or
+  (gated filters) its gate rejected at least ``gated_fraction`` of the features it was
+  given at every one of those steps (a filter locked out by its own gate), or it measured
+  no feature at any of those steps (none in view or delivered). The filter
+  stops there: the trial is frozen at that step, its later errors are NaN.
+- **inconsistent**: what only the truth reveals. An error beyond the scenario's
+  ``divergence`` bounds (``rho_m``, ``rho_dot_mps``, ``omega_degps``, ``k``), or a NEES far
+  beyond its claimed covariance (``mc/divergence.py``). A flag only, with its first step
+  and reason: the filter goes on to the end (a chaser cannot see the truth) and its
+  errors count.
 """
 
 from __future__ import annotations
@@ -39,9 +44,12 @@ from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
 from ..sim import measurements as meas
 from ..sim.faults import Faults, apply_faults
 from ..sim.truth import Truth
+from ..rundir.tables import AXES
 
 Array = NDArray[np.float64]
 RAD2DEG = 180.0 / np.pi
+# SI -> the units of rundir.tables.AXIS_UNITS (rho, rho_dot as they are; omega and the attitude error in degrees)
+_AXIS_SCALE = np.array([1.0] * 6 + [RAD2DEG] * 6 + [1.0] * 2)
 
 
 @dataclass(frozen=True)
@@ -115,8 +123,8 @@ class FilterRun:
     nis_dof: Array  # (K+1,) measurement dimension
     iterations: Array  # (B, K+1) int; 0 at step 0
     converged: Array  # (B, K+1) bool
-    diverged_step: Array  # (B,) int, -1 if not diverged
-    diverged_reason: list[str] = field(default_factory=list)
+    lost_step: Array  # (B,) int, -1 if not lost (the filter stopped there)
+    lost_reason: list[str] = field(default_factory=list)
     nees_parts: dict[str, Array] = field(default_factory=dict)  # nees_<block>, nees_gauge: (B, K+1)
     runtime_s: Array | None = None  # (B,) chunk wall time shared equally
     x_final: Array | None = None  # (B, n)
@@ -124,16 +132,41 @@ class FilterRun:
     dof: Array | None = None  # (B, K+1) per-trial measurement dimension (features dropped or gated out removed)
     gated: Array | None = None  # (B, K+1) int: features rejected by the filter's gate at each step
     k_sigma_ratio: Array | None = None  # (B, 2) final / initial standard deviation of k1, k2
+    inconsistent_step: Array | None = None  # (B,) int: first step a truth-based rule fired, -1 if none (a flag only)
+    inconsistent_reason: list[str] = field(default_factory=list)
+    state_dim: int = 0  # n: the NEES has n - 1 degrees of freedom, the gauge-projected one n - 4 (errorstate.nees_dof)
+    axis_err: Array | None = None  # (B, K+1, len(AXES)): per-axis error-state components (AXIS_UNITS); NaN once lost
+    axis_sigma: Array | None = None  # (B, K+1, len(AXES)): the filter's standard deviation of each
+
+    def __post_init__(self) -> None:
+        B = self.lost_step.shape[0]
+        if self.inconsistent_step is None:
+            self.inconsistent_step = np.full(B, -1)
+        if not self.inconsistent_reason:
+            self.inconsistent_reason = [""] * B
+
+    @property
+    def diverged_step(self) -> Array:
+        """Alias of ``lost_step`` (the name before lost and inconsistent were told apart; one release)."""
+        return self.lost_step
+
+    @property
+    def diverged_reason(self) -> list[str]:
+        """Alias of ``lost_reason`` (one release)."""
+        return self.lost_reason
 
 
-def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = None) -> list[str]:
-    """Reason of divergence per trial ('' when healthy).
+def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = None) -> tuple[list[str], list[str]]:
+    """Per trial, the reason it is lost and the reason it is inconsistent ('' when healthy).
 
+    Lost: a non-finite state or covariance, or a covariance that is not positive definite
+    (what the filter sees). Inconsistent: an error beyond the ``divergence`` bounds (what
+    only the truth reveals; a flag, the filter goes on).
     ``pd``: per trial, ``P`` known positive definite (the compiled NEES kernel's Cholesky
     factorization went through); None: checked here by numpy's Cholesky.
     """
     B = x.shape[0]
-    reasons = [""] * B
+    lost, incons = [""] * B, [""] * B
     if pd is None:
         finite = np.isfinite(x).all(axis=-1) & np.isfinite(P).all(axis=(-1, -2))
         pd = np.zeros(B, bool)
@@ -144,18 +177,15 @@ def _check(x: Array, P: Array, err: Array, bounds: Bounds, pd: Array | None = No
         rest = np.flatnonzero(~pd)
         if rest.size:
             finite[rest] = np.isfinite(x[rest]).all(axis=-1) & np.isfinite(P[rest]).all(axis=(-1, -2))
+    for i in np.flatnonzero(~pd):  # (not finite implies not pd)
+        lost[i] = "non-finite state or covariance" if not finite[i] else "covariance not positive definite"
     lim = np.array([bounds.rho_m, bounds.rho_dot_mps, bounds.omega_degps, np.inf, bounds.k, bounds.k])
     over = err > lim
     names = ("rho", "rho_dot", "omega", "theta", "k1", "k2")
-    for i in np.flatnonzero(~pd | over.any(axis=-1)):  # (not finite implies not pd)
-        if not finite[i]:
-            reasons[i] = "non-finite state or covariance"
-        elif not pd[i]:
-            reasons[i] = "covariance not positive definite"
-        else:
-            j = int(np.argmax(over[i]))
-            reasons[i] = f"error bound exceeded: e_{names[j]} = {err[i, j]:.3g} > {lim[j]:g}"
-    return reasons
+    for i in np.flatnonzero(over.any(axis=-1)):
+        j = int(np.argmax(over[i]))
+        incons[i] = f"inconsistent: error bound exceeded: e_{names[j]} = {err[i, j]:.3g} > {lim[j]:g}"
+    return lost, incons
 
 
 def run_filter(
@@ -185,6 +215,8 @@ def run_filter(
     conv = np.zeros((B, K + 1), bool)
     div_step = np.full(B, -1)
     reasons = [""] * B
+    inc_step = np.full(B, -1)  # the truth-based flag: first step and reason, the filter goes on
+    inc_reasons = [""] * B
     x = x0_hat.copy()
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     P = estimators.initial_covariance(x, P, fs)
@@ -197,6 +229,9 @@ def run_filter(
     nees = nees_all[..., keys.index("nees")]
     parts = {k: nees_all[..., keys.index(k)] for k in es.nees_dof(n) if k != "nees"}
     _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
+    ax_err = np.full((B, K + 1, len(AXES)), np.nan)
+    ax_sig = np.full((B, K + 1, len(AXES)), np.nan)
+    ax_err[:, 0], ax_sig[:, 0] = axis_errors(x, P, true_state(truth.x, 0, np.arange(B)), chart)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -243,7 +278,7 @@ def run_filter(
                 v, pd = _posterior_nees(u, x_true_k, chart, kernels)
             except np.linalg.LinAlgError:
                 v, pd = None, None
-            bad = _check(u.x, u.P, e, bounds, pd)
+            bad, incons = _check(u.x, u.P, e, bounds, pd)
         if any(failed):
             bad = [f or b for f, b in zip(failed, bad)]
         x_act, P_act = u.x, u.P
@@ -251,6 +286,7 @@ def run_filter(
         w_hist = np.concatenate([w_hist[:, 1:], w_last[:, None]], axis=1)  # push the posterior at t_k
         v_hist = np.concatenate([v_hist[:, 1:], v_last[:, None]], axis=1)
         err[active, k] = e
+        ax_err[active, k], ax_sig[active, k] = axis_errors(u.x, u.P, x_true_k, chart)
         its[active, k], conv[active, k] = u.iterations, u.converged
         if getattr(u, "features_used", None) is not None:
             dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
@@ -267,6 +303,11 @@ def run_filter(
                 if not bad[j]:
                     bad[j] = (f"filter lost: mean NIS over {bounds.nis_window_steps} steps = "
                               f"{ratio[j]:.3g} x its dimension > {bounds.nis_ratio:g}")  # fmt: skip
+            # not one feature offered to the update (in view and delivered; the pseudo rows are fewer than a feature's)
+            blind = np.all(dof[active, w0 : k + 1] // y_feat.shape[-1] + gated[active, w0 : k + 1] == 0, axis=1)
+            for j in np.flatnonzero(blind):
+                if not bad[j]:
+                    bad[j] = f"filter lost: no feature measured at any of {bounds.nis_window_steps} steps"
             if fs.gate_probability is not None:
                 lock = _gated_out(gated[active, w0 : k + 1], dof[active, w0 : k + 1], y_feat.shape[-1],
                                   bounds.gated_fraction)  # fmt: skip
@@ -274,14 +315,19 @@ def run_filter(
                     if not bad[j]:
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
-            incons = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio, bounds.nees_factor)
-            if any(incons):
-                bad = [b or c for b, c in zip(bad, incons)]
+            by_nees = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio,
+                                           bounds.nees_factor)  # fmt: skip
+            incons = [c or d for c, d in zip(incons, by_nees)]
+        for j in np.flatnonzero(inc_step[active] < 0):
+            if incons[j]:  # (a flag of its own: a trial lost later, or at this step, keeps it)
+                inc_step[active[j]], inc_reasons[active[j]] = k, incons[j]
         lost = [j for j, b in enumerate(bad) if b]  # the trials lost at this step (positions in ``active``)
         if lost:  # their posteriors stay in x, P; the others go on
             for j in lost:
                 div_step[active[j]], reasons[active[j]] = k, bad[j]
             err[active[lost], k:] = np.nan
+            ax_err[active[lost], k:] = np.nan
+            ax_sig[active[lost], k:] = np.nan
             keep = np.ones(active.size, bool)
             keep[lost] = False
             x[active[~keep]], P[active[~keep]] = x_act[~keep], P_act[~keep]
@@ -292,8 +338,34 @@ def run_filter(
     with np.errstate(all="ignore"):
         k_ratio = np.sqrt(np.diagonal(P[:, ks, ks], axis1=-2, axis2=-1) / setup.P0_diag[-2:])
     return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, nees_parts=parts,
-                     x_final=x, P_final=P, k_sigma_ratio=k_ratio,
-                     dof=dof, gated=gated)  # fmt: skip
+                     x_final=x, P_final=P, k_sigma_ratio=k_ratio, dof=dof, gated=gated,
+                     inconsistent_step=inc_step, inconsistent_reason=inc_reasons, state_dim=n,
+                     axis_err=ax_err, axis_sigma=ax_sig)  # fmt: skip
+
+
+def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> tuple[Array, Array]:
+    """Per-axis error and the filter's standard deviation of it ``(B, len(AXES))`` each, in ``AXIS_UNITS``.
+
+    The error is ``eps`` of the attitude chart with ``x_hat = x_true [+] eps`` (``core.errorstate``: d rho,
+    d rho_dot, d omega, the attitude error vector ``a``, d k), the quantities the block NEES are evaluated on;
+    its covariance is ``M P M^T`` restricted to these rows, ``M`` mapping the filter's own error state (or the full
+    state) to ``eps`` at ``x_hat``, as ``core.aligned.nees_report`` maps it. NaN where the state is not finite.
+    """
+    with np.errstate(all="ignore"):
+        n = x.shape[-1]
+        rows = np.r_[0 : es.ATT.stop, es.k_slice(st.n_points(n))]  # rho, rho_dot, omega, attitude come first; k last
+        eps = es.estimation_error(x, x_true)[..., rows]
+        if P.shape[-1] == n:  # the full state's covariance: eps = T dx
+            M = es.error_map(x)[..., rows, :]
+        elif error_state == "aligned":
+            M = es.error_map(x)[..., rows, :] @ aligned.chart_jacobian(x)
+        else:  # the attitude chart's own covariance
+            M = None
+        if M is None:
+            var = np.diagonal(P, axis1=-2, axis2=-1)[..., rows]
+        else:
+            var = np.einsum("...ij,...jk,...ik->...i", M, P, M)
+        return eps * _AXIS_SCALE, np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
 
 
 def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:

@@ -22,7 +22,7 @@ import pandas as pd
 from ..rundir.tables import ERROR_NAMES
 
 KEY = ("filter", "population", "percentile")
-VALUE_COLUMNS = (*ERROR_NAMES, "trials", "diverged")
+VALUE_COLUMNS = (*ERROR_NAMES, "trials", "lost", "inconsistent", "diverged")
 POPULATIONS = ("converged", "all", "both")
 
 

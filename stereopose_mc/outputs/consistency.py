@@ -2,7 +2,7 @@
 
 Reads the per-trial window means of ``trials.parquet`` (``nees_mean``, ``nees_<block>_mean``,
 ``nees_gauge_mean``, ``nis_ratio_mean``) and summarizes them per filter over the trials
-that did not diverge: the median over trials of the time-averaged NEES divided by its
+that were not lost: the median over trials of the time-averaged NEES divided by its
 degrees of freedom (one convention everywhere, docs/filters.md: the error state has
 ``n - 1`` dimensions, the gauge-projected one ``n - 4``), and the median time-averaged
 NIS per measurement dimension against the chi-square 95 % band of one trial's average.
@@ -17,6 +17,7 @@ import pandas as pd
 from scipy.special import chdtri
 
 from ..core import errorstate as es
+from ..rundir.percentiles import excluded
 
 NEES_LIMIT = 2.0  # a median NEES/dof above this is called overconfident (issue 10's target)
 
@@ -59,7 +60,9 @@ class Consistency:
                        f"{_name(worst)}: {self.nees[worst]:.3g} x its dof, limit {NEES_LIMIT:g})")
         if not self.nis_inside:
             side = "above" if self.nis_ratio > self.nis_band[1] else "below"
-            bad.append(f"NIS {side} its band by a factor {self.nis_ratio / self.nis_band[1 if side == 'above' else 0]:.3g}")
+            edge = self.nis_band[1 if side == "above" else 0]
+            bad.append(f"NIS/dof {self.nis_ratio:.4g} {side} its band's {'upper' if side == 'above' else 'lower'} end "
+                       f"{edge:.4g}")  # fmt: skip
         return head + ": NOT consistent: " + "; ".join(bad) + "."
 
 
@@ -76,7 +79,7 @@ def nis_band(dof_mean: float, steps: int, level: float = 0.95) -> tuple[float, f
 
 def summarize(trials: pd.DataFrame, label: str, state_dim: int, window_steps: int) -> Consistency:
     """Consistency of filter ``label`` from a trials table (converged trials only)."""
-    g = trials[(trials["filter"] == label) & ~trials["diverged"].astype(bool)]
+    g = trials[(trials["filter"] == label).to_numpy() & ~excluded(tables_cols(trials))]
     dof = es.nees_dof(state_dim)
     med = {}
     for k, d in dof.items():
@@ -89,6 +92,11 @@ def summarize(trials: pd.DataFrame, label: str, state_dim: int, window_steps: in
     m = float(np.nanmean(g["nis_dof_mean"])) if "nis_dof_mean" in g and len(g) else 1.0
     return Consistency(label, len(g), med, dof, float(np.median(r)) if r.size else float("nan"),
                        nis_band(m, window_steps))  # fmt: skip
+
+
+def tables_cols(trials: pd.DataFrame) -> dict:
+    """The flag columns of a trials table, as ``rundir.percentiles.excluded`` reads them."""
+    return {c: trials[c].to_numpy() for c in ("lost", "diverged", "inconsistent") if c in trials}
 
 
 def table(cs: list[Consistency]) -> pd.DataFrame:

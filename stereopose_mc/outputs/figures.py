@@ -39,7 +39,7 @@ from scipy.stats import chi2
 from ..filters.registry import thesis_role
 from ..rundir import store
 from ..rundir.percentiles import percentile_table, percentiles_markdown
-from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
+from ..rundir.tables import AXES, AXIS_UNITS, ERROR_LABELS, ERROR_NAMES
 from ..studies.figure_files import save_figure
 
 PANEL_SHAPE = (2, 3)
@@ -196,14 +196,27 @@ def time_percentiles(A: np.ndarray, qs: list[float]) -> np.ndarray:
         return np.nanpercentile(A, qs, axis=0)
 
 
+def live_trials(ax, t: np.ndarray, A: np.ndarray) -> None:
+    """The count of live trials (a finite value) per step, as a grey step line on a right axis of ``ax``."""
+    tw = ax.twinx()
+    tw.step(t, np.isfinite(A).sum(axis=0), where="mid", color="grey", lw=0.8, alpha=0.8)
+    tw.set_ylim(0, max(1, A.shape[0]) * 1.05)
+    tw.set_ylabel("live trials", color="grey", fontsize=7)
+    tw.tick_params(axis="y", labelsize=7, colors="grey")
+
+
 def error_vs_time_figure(ts: pd.DataFrame, label: str, window_start: float | None) -> Figure:
-    """Median and central 70 % / 90 % bands over trials of each error vs time (log y)."""
+    """Median and central 70 % / 90 % bands over the live trials of each error vs time (log y), and their count."""
     g = ts[ts["filter"] == label]
     trial_ids = np.unique(g["trial"].to_numpy())
-    fig, axes = _panels(f"{label}: estimation error vs time over {trial_ids.size} trials "
-                        "(median, central 70 % and 90 % bands)")  # fmt: skip
+    _, _, E = pivot(g, ERROR_NAMES[0])
+    live = np.isfinite(E).sum(axis=0)
+    fig, axes = _panels(f"{label}: estimation error vs time over the live trials, {live.min() if live.size else 0}-"
+                        f"{trial_ids.size} of {trial_ids.size} (grey, right axis; median, central 70 % and 90 % "
+                        "bands)")  # fmt: skip
     for ax, name in zip(axes, ERROR_NAMES):
         _, t, A = pivot(g, name)
+        live_trials(ax, t, A)
         for cover, colour in sorted(CENTRAL_BANDS, reverse=True):
             lo, hi = time_percentiles(A, [50 - cover / 2, 50 + cover / 2])
             ax.fill_between(t, lo, hi, color=colour, lw=0, label=f"{cover:g} % band")
@@ -214,6 +227,48 @@ def error_vs_time_figure(ts: pd.DataFrame, label: str, window_start: float | Non
         ax.set_xlabel("t [s]")
         ax.set_ylabel(ERROR_LABELS[name])
     axes[0].legend(fontsize=8)
+    return fig
+
+
+MAX_LINES = 100  # the per-axis figure draws the first this-many trials' lines (the envelope and fraction use all)
+
+
+def axis_error_figure(ts: pd.DataFrame, label: str, window_start: float | None) -> Figure:
+    """The Monte Carlo plot per axis: every trial's error (thin lines) and the median filter +-3 sigma envelope,
+    with the fraction of (trial, step) pairs in the window whose error lies inside +-3 sigma."""
+    g = ts[ts["filter"] == label]
+    blocks = [AXES[i : i + 3] for i in range(0, 12, 3)] + [AXES[12:]]
+    fig = Figure(figsize=(12, 13), layout="constrained")
+    axes = fig.subplots(len(blocks), 3, squeeze=False)
+    n_tr = g["trial"].nunique()
+    for row, names in zip(axes, blocks):
+        for ax, c in zip(row, names):
+            _, t, E = pivot(g, f"err_{c}")
+            _, _, S = pivot(g, f"sigma_{c}")
+            ax.plot(t, E[:MAX_LINES].T, color="#4a6fa5", lw=0.4, alpha=0.35)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                s3 = 3 * np.nanmedian(S, axis=0)
+            ax.plot(t, s3, color="#d62728", lw=1.3, ls="--", label="median filter \u00b13\u03c3")
+            ax.plot(t, -s3, color="#d62728", lw=1.3, ls="--")
+            w = np.ones(t.shape, bool) if window_start is None else t >= window_start - 1e-9
+            ok = np.isfinite(E[:, w]) & np.isfinite(S[:, w])
+            inside = np.abs(E[:, w]) <= 3 * S[:, w]
+            frac = float(inside[ok].mean()) if ok.any() else float("nan")
+            ax.set_title(f"{c}: {100 * frac:.1f} % inside \u00b13\u03c3", fontsize=9)
+            lim = np.nanmax(np.abs(s3[w])) if np.isfinite(s3[w]).any() else None
+            if lim and lim > 0:
+                ax.set_ylim(-3 * lim, 3 * lim)  # the envelope readable; a wild trial leaves the axis
+            if window_start is not None:
+                ax.axvline(window_start, color="grey", ls=":", lw=1)
+            ax.set_ylabel(f"err [{AXIS_UNITS[c]}]", fontsize=8)
+            ax.tick_params(labelsize=7)
+        for ax in row[len(names) :]:
+            ax.set_visible(False)
+    axes[-1][0].set_xlabel("t [s]")
+    axes[0][0].legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{label}: error per axis, {min(n_tr, MAX_LINES)} of {n_tr} trials drawn; fraction inside \u00b13\u03c3 "
+                 f"over t \u2265 {window_start if window_start is not None else 0:g} s, all {n_tr} trials")  # fmt: skip
     return fig
 
 
@@ -254,25 +309,33 @@ class Consistency:
 
 
 def consistency(ts: pd.DataFrame, label: str, column: str, dof: int | None) -> Consistency:
-    """Mean of ``column`` (``nees`` or ``nis``) over trials per step and its 95 % band.
+    """Mean of ``column`` over the live trials per step and its 95 % band.
 
-    ``dof`` is the state dimension for NEES; ``None`` takes each step's ``nis_dof``.
+    ``dof`` is the state dimension for NEES; ``None`` is the NIS **per measurement dimension**: each trial's
+    ``nis / nis_dof`` (its dimension varies between trials and steps under occlusion, dropouts and gating), the
+    mean being ``sum(nis) / sum(nis_dof)`` over the live trials, whose band for a consistent filter is
+    ``chi2.ppf([0.025, 0.975], D) / D`` with ``D = sum(nis_dof)`` (expected 1).
     """
     g = ts[ts["filter"] == label]
     _, t, A = pivot(g, column)
-    finite = np.isfinite(A)
-    M = finite.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(M > 0, np.where(finite, A, 0.0).sum(axis=0) / np.maximum(M, 1), np.nan)
     if dof is None:
         _, _, D = pivot(g, "nis_dof")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            d = np.nanmax(np.where(finite, D, np.nan), axis=0)
-        d = np.where(np.isfinite(d), d, 0.0)
+        A = np.where(D > 0, A, np.nan)
+    finite = np.isfinite(A)
+    M = finite.sum(axis=0)
+    if dof is None:
+        tot = np.where(finite, D, 0.0).sum(axis=0)  # D = sum of the live trials' dimensions
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(tot > 0, np.where(finite, A, 0.0).sum(axis=0) / tot, np.nan)
+            A = A / np.where(D > 0, D, np.nan)
+        lo, hi = mean_band(np.ones_like(tot), tot)
+        lo, hi = lo / np.where(tot > 0, tot, np.nan), hi / np.where(tot > 0, tot, np.nan)
+        d = np.where(tot > 0, 1.0, np.nan)
     else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(M > 0, np.where(finite, A, 0.0).sum(axis=0) / np.maximum(M, 1), np.nan)
         d = np.full(t.shape, float(dof))
-    lo, hi = mean_band(M, d)
+        lo, hi = mean_band(M, d)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         q = np.nanpercentile(A, [5, 50, 95], axis=0) if A.size else None
@@ -302,7 +365,14 @@ def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> 
     ax.set_xlabel("t [s]")
     ax.set_ylabel(what)
     m = int(np.max(c.M)) if c.M.size else 0
-    ax.set_title(f"{label}: {what} over up to {m} trials; mean inside its band at {inside} of {steps} steps", fontsize=10)
+    tw = ax.twinx()
+    tw.step(c.t, c.M, where="mid", color="grey", lw=0.8, alpha=0.8)
+    tw.set_ylim(0, max(1, m) * 1.05)
+    tw.set_ylabel("live trials", color="grey", fontsize=8)
+    tw.tick_params(axis="y", labelsize=7, colors="grey")
+    low = int(np.min(c.M[c.M > 0])) if (c.M > 0).any() else 0
+    ax.set_title(f"{label}: {what} over the live trials ({low}-{m}, grey); mean inside its band at {inside} of {steps} "
+                 "steps", fontsize=10)  # fmt: skip
     ax.legend(fontsize=8)
     return fig
 
@@ -405,7 +475,7 @@ def build_figures(
         fs.tables += [out_dir / f"percentiles-{s}.csv", out_dir / f"percentiles-{s}.md"]
     for label in filters:
         add(error_histograms(trials, label), f"hist-{safe_name(label)}", f"{label}: histograms of per-trial errors",
-            "Per-trial mean error over the error window, converged trials (thesis figures 6.8-6.13).")  # fmt: skip
+            "Per-trial mean error over the error window, trials not lost (thesis figures 6.8-6.13).")  # fmt: skip
 
     pair = ekf_iekf_pair(filters, filter_types)
     if pair is None:
@@ -427,9 +497,16 @@ def build_figures(
             s = safe_name(label)
             n_ts = timeseries.loc[timeseries["filter"] == label, "trial"].nunique()
             add(error_vs_time_figure(timeseries, label, window_start), f"time-{s}", f"{label}: error vs time",
-                f"Median over the {n_ts} trials of timeseries.parquet and central bands holding 70 % (15th-85th "
+                f"Median over the live trials (of the {n_ts} of timeseries.parquet; a lost trial leaves at the step it "
+                "was lost, grey line and right axis: their count) and central bands holding 70 % (15th-85th "
                 "percentile) and 90 % (5th-95th) of them; dotted line: start of the error window "
                 "(thesis figures 6.1-6.6).")  # fmt: skip
+            if f"err_{AXES[0]}" in timeseries:
+                add(axis_error_figure(timeseries, label, window_start), f"axes-{s}", f"{label}: error per axis vs 3 sigma",
+                    "Every trial's error per axis (thin lines; the attitude chart's components, theta the attitude "
+                    "error vector) and the median over trials of the filter's own \u00b13\u03c3 (dashed); each title "
+                    "gives the fraction of the error-window steps of all trials inside \u00b13\u03c3 (about 99.7 % "
+                    "for a consistent, Gaussian filter).")  # fmt: skip
             if state_dim:
                 # the unit-norm quaternion takes one direction out of the state error: n - 1 dof
                 dof = state_dim - 1
@@ -442,10 +519,11 @@ def build_figures(
             else:
                 fs.notes.append(f"{label}: NEES figure skipped: manifest.json has no state_dim")
             c = consistency(timeseries, label, "nis", None)
-            add(consistency_figure(c, label, "NIS", "measurement dimension"), f"nis-{s}", f"{label}: NIS vs time",
-                "Median and 5th-95th percentile of the NIS over the trials alive at each step, and their mean with "
-                "its band chi2.ppf([0.025, 0.975], M*m)/M with m the "
-                "step's measurement dimension (nis_dof).")  # fmt: skip
+            add(consistency_figure(c, label, "NIS / dof", "1 per dimension"), f"nis-{s}", f"{label}: NIS vs time",
+                "NIS per measurement dimension (nis / nis_dof; the dimension varies with visibility, dropouts and "
+                "gating): median and 5th-95th percentile over the trials alive at each step, and sum(nis) / "
+                "sum(nis_dof) over them with its band chi2.ppf([0.025, 0.975], D)/D, D = sum(nis_dof); grey: the "
+                "live trials.")  # fmt: skip
 
     if timing is None or timing.empty:
         fs.notes.append("compute-time histogram skipped: the run has no timing.parquet")

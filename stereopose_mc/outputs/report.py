@@ -17,6 +17,7 @@ import base64
 import html
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -29,11 +30,11 @@ from .. import __version__
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
 from ..filters.registry import thesis_role
 from ..rundir import store
-from ..rundir.percentiles import percentile_table
+from ..rundir.percentiles import percentile_table, reason_kind, wilson_interval
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from . import figures as figs
 from . import sensitivity_report
-from .summary import summarize
+from .summary import remedies, summarize
 
 REQUIRED_FILES = ("config.yaml", "manifest.json", "trials.parquet")
 OPTIONAL_TABLES = ("timeseries.parquet", "timing.parquet")
@@ -102,6 +103,21 @@ class RunData:
     def state_dim(self) -> int | None:
         v = self.manifest.get("state_dim")
         return int(v) if v is not None else None
+
+    @property
+    def divergence(self) -> dict[str, Any]:
+        d = self.config.get("divergence")
+        return d if isinstance(d, dict) else {}
+
+    @property
+    def exclude_inconsistent(self) -> bool:
+        return bool(self.divergence.get("exclude_inconsistent", False))
+
+    def filter_config(self, label: str) -> dict[str, Any] | None:
+        for f in self.config.get("filters") or []:
+            if isinstance(f, dict) and str(f.get("name") or f.get("type")) == label:
+                return f
+        return None
 
 
 # --------------------------------------------------------------------------- loading
@@ -213,7 +229,7 @@ td.l,th.l{text-align:left}.side{display:flex;flex-wrap:wrap;gap:2em;align-items:
 figcaption{font-size:.9em;color:#444}code{background:#f4f4f4;padding:0 .2em}
 .ok{color:#1b7837;font-weight:600}.bad{color:#b2182b;font-weight:600}.verdicts li{margin:.3em 0}
 .verdicts .ok,.verdicts .bad{font-weight:normal}
-details{margin:.5em 0}summary{cursor:pointer;font-weight:600}
+details{margin:.5em 0}summary{cursor:pointer;font-weight:600}.ci{color:#666;font-size:.85em;white-space:nowrap}.ci0{white-space:nowrap}
 """
 
 
@@ -359,46 +375,64 @@ def thesis_side(pt: pd.DataFrame, label: str, case: str) -> str:
 
 
 def reason_category(reason: str) -> str:
-    """A divergence reason without its numbers: ``error bound exceeded: e_rho = 1.2e3 > 1000`` ->
-    ``error bound exceeded: e_rho``."""
-    return reason.split(" = ", 1)[0].strip() or "(no reason recorded)"
+    """A lost or inconsistency reason without its numbers (``rundir.percentiles.reason_kind``)."""
+    return reason_kind(reason)
 
 
 def divergence_rows(data: RunData) -> list[list[str]]:
-    """Per filter and reason: count, trials (first 10), median step (and time) of divergence."""
-    d = data.trials[data.trials["diverged"].astype(bool)]
+    """Per filter, flag (lost / inconsistent) and kind of reason: count, trials (first 10), median step and time."""
     t = data.config.get("time") or {}
     dt = float(t.get("dt_s", np.nan)) if isinstance(t, dict) else np.nan
+    tr = data.trials
+    flags = [("lost", "lost", "lost_reason", "lost_step")] if "lost" in tr else [
+        ("lost", "diverged", "diverged_reason", "diverged_step")]
+    if "inconsistent" in tr:
+        flags.append(("inconsistent (flag)", "inconsistent", "inconsistent_reason", "inconsistent_step"))
     rows = []
-    if d.empty:
-        return rows
-    reasons = d["diverged_reason"].astype(str) if "diverged_reason" in d else pd.Series("", index=d.index)
-    d = d.assign(_cat=reasons.map(reason_category))
-    for (label, cat), g in d.groupby(["filter", "_cat"], sort=False):
-        ids = sorted(int(t) for t in g["trial"])
-        shown = ", ".join(map(str, ids[:10])) + (f", ... ({len(ids) - 10} more)" if len(ids) > 10 else "")
-        step = float(np.median(g["diverged_step"])) if "diverged_step" in g else np.nan
-        rows.append([esc(label), esc(cat), str(len(ids)), esc(shown), esc(fmt_num(step)), esc(fmt_num(step * dt))])
+    for label in data.filters:
+        for what, flag, reason, step in flags:
+            d = tr[(tr["filter"] == label) & tr[flag].astype(bool)]
+            if d.empty:
+                continue
+            reasons = d[reason].astype(str) if reason in d else pd.Series("", index=d.index)
+            d = d.assign(_cat=reasons.map(reason_category))
+            for cat, g in sorted(d.groupby("_cat", sort=False), key=lambda kv: -len(kv[1])):
+                ids = sorted(int(t) for t in g["trial"])
+                shown = ", ".join(map(str, ids[:10])) + (f", ... ({len(ids) - 10} more)" if len(ids) > 10 else "")
+                st = float(np.median(g[step])) if step in g else np.nan
+                rows.append([esc(label), esc(what), esc(cat), str(len(ids)), esc(shown), esc(fmt_num(st)),
+                             esc(fmt_num(st * dt))])  # fmt: skip
     return rows
 
 
-def consistency_verdicts(data: RunData) -> list[str]:
-    """Per filter, the consistency verdict in words (empty for runs without the NEES block columns)."""
+def consistency_of(data: RunData) -> dict[str, Any]:
+    """Per filter, its ``outputs.consistency.Consistency`` over the trials not lost (none for runs without the NEES
+    block columns)."""
     from . import consistency
 
     t = data.config.get("time") or {}
     if not data.state_dim or "nees_gauge_mean" not in data.trials or not isinstance(t, dict):
-        return []
+        return {}
     try:
         dt, dur, w = float(t.get("dt_s", 1.0)), float(t.get("duration_s", 100.0)), float(t.get("error_window_start_s", 0))
     except (TypeError, ValueError):
-        return []
+        return {}
     steps = int(round((dur - w) / dt)) + 1
-    out = []
-    for label in data.filters:
-        c = consistency.summarize(data.trials, label, data.state_dim, steps)
-        out.append(c.verdict() if c.trials else f"{label}: no converged trial, no consistency to judge.")
-    return out
+    return {label: consistency.summarize(data.trials, label, data.state_dim, steps) for label in data.filters}
+
+
+def top_drivers(data: RunData, label: str, top: int = 3) -> str:
+    """The ``top`` strongest significant drivers of the filter's errors (a dispersed run's ``sensitivity.csv``)."""
+    path = data.path / "sensitivity.csv"
+    if not data.config.get("dispersions") or not path.is_file():
+        return ""
+    tab = pd.read_csv(path)
+    g = tab[(tab["filter"] == label) & (tab["statistic"] == "spearman") & tab["significant"].astype(bool)]
+    if g.empty:
+        return "no significant driver"
+    g = g.reindex(g["value"].abs().sort_values(ascending=False, kind="stable").index).head(top)
+    return "; ".join(f"{ERROR_LABELS.get(r.metric, r.metric)} \u2190 {r.parameter} (Spearman {r.value:+.2f}, "
+                     f"n = {r.n})" for r in g.itertuples())  # fmt: skip
 
 
 def diagnostics_rows(data: RunData) -> list[list[str]]:
@@ -427,34 +461,76 @@ def _figure_html(f: figs.FigureFile, root: Path) -> str:
             f"<code>{esc(svg_rel)}</code>.</figcaption></figure>")  # fmt: skip
 
 
-def results_summary_html(data: RunData, pt: pd.DataFrame) -> str:
-    """The report's first section: per filter, trials, converged, divergence reasons, median errors
-    and the consistency verdict in words (``outputs.summary``)."""
-    sums = summarize(data.trials, data.timeseries, data.filters, data.filter_types, data.state_dim,
-                     data.window_start, reason_category)  # fmt: skip
-    heads = ["filter", "type", "trials", "converged", "diverged (reasons)",
-             *[f"median {ERROR_LABELS[n]}" for n in ERROR_NAMES], "consistency"]  # fmt: skip
-    rows, verdicts = [], []
-    p50 = pt if 50 in set(pt["percentile"]) else percentile_table(data.trials, [50])
+def rate_cell(k: int, n: int) -> str:
+    """A rate as a table cell: ``k / n`` and the percentage, then its 95 % Wilson interval."""
+    if n <= 0:
+        return "-"
+    lo, hi = wilson_interval(k, n)
+    return (f'<span class="ci0">{k} / {n} = <b>{100 * k / n:.0f} %</b></span><br>'
+            f'<span class="ci">CI {100 * lo:.0f}-{100 * hi:.0f} %</span>')  # fmt: skip
+
+
+def code_spans(text: str) -> str:
+    """Markdown-style `code` spans of an escaped text as ``<code>`` elements."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
+
+
+def results_summary_html(data: RunData) -> str:
+    """The report's first screen: per filter, the lost and inconsistent rates with their 95 % Wilson intervals, the
+    p50 / p90 of each per-trial mean error over the trials in the statistics (with their count), one consistency
+    verdict naming the blocks that fail, the top drivers of a dispersed run, and what to try when most trials are
+    lost (``outputs.summary``)."""
+    excl = data.exclude_inconsistent
+    sums = summarize(data.trials, data.filters, data.filter_types, excl)
+    cons = consistency_of(data)
+    pq = percentile_table(data.trials, [50, 90], excl)
+    heads = ["filter", "type", "lost (95 % CI)", "inconsistent (95 % CI)", "trials in the statistics",
+             *[f"{ERROR_LABELS[n]} p50 / p90" for n in ERROR_NAMES], "consistency"]  # fmt: skip
+    rows, items, advice = [], [], []
     for s in sums:
-        med = p50[(p50["filter"] == s.label) & (p50["population"] == "converged") & (p50["percentile"] == 50)]
-        vals = [med[n].iloc[0] if len(med) else np.nan for n in ERROR_NAMES]
-        word = {True: "consistent", False: "NOT consistent", None: "unknown"}[s.consistent]
-        cls = {True: "ok", False: "bad", None: "note"}[s.consistent]
-        rows.append([esc(s.label), esc(s.kind), str(s.trials), str(s.converged), esc(s.divergence_words()),
-                     *_cells(vals), f'<span class="{cls}">{esc(word)}</span>'])  # fmt: skip
-        verdicts.append(f'<li><b>{esc(s.label)}</b>: <span class="{cls}">{esc(s.verdict())}</span>.</li>')
+        g = pq[(pq["filter"] == s.label) & (pq["population"] == "converged")].set_index("percentile")
+        cells = [f"{fmt_num(g.at[50, n])} / {fmt_num(g.at[90, n])}" if len(g) else "-" for n in ERROR_NAMES]
+        c = cons.get(s.label)
+        ok = None if c is None or not c.trials else c.consistent
+        word = {True: "consistent", False: "NOT consistent", None: "unknown"}[ok]
+        cls = {True: "ok", False: "bad", None: "note"}[ok]
+        rows.append([esc(s.label), esc(s.kind), rate_cell(s.lost, s.trials), rate_cell(s.inconsistent, s.trials),
+                     str(s.kept), *[esc(v) for v in cells], f'<span class="{cls}">{esc(word)}</span>'])  # fmt: skip
+        verdict = c.verdict().removeprefix(f"{s.label}: ") if c is not None and c.trials else word
+        parts = [f'<span class="{cls}">{esc(verdict)}</span>']
+        if s.lost_kinds:
+            parts.append(f"<i>Lost</i>: {esc(s.kinds_words(s.lost_kinds))}.")
+        if s.inconsistent_kinds:
+            kinds = [(k.removeprefix("inconsistent: "), n) for k, n in s.inconsistent_kinds]
+            parts.append(f"<i>Inconsistent</i> ({'left out' if excl else 'counted'}): {esc(s.kinds_words(kinds))}.")
+        drivers = top_drivers(data, s.label)
+        if drivers:
+            parts.append(f"Top drivers: {esc(drivers)}.")
+        items.append(f"<li><b>{esc(s.label)}</b>: " + " ".join(parts) + "</li>")
+        advice += [f"<li>{code_spans(esc(r))}</li>" for r in remedies(s, data.filter_config(s.label))]
     window = f"t \u2265 {fmt_value(data.window_start)} s"
-    return ("<h2>Results</h2>" + html_table(heads, rows, left=2, caption=f"median of the per-trial mean errors over "
-            f"{window}, converged trials") + "<ul class=\"verdicts\">" + "".join(verdicts) + "</ul>"
-            + '<p class="note">Consistency: the average over the converged trials of each trial\'s window-mean NEES '
-            "(and, with a time series, of its NIS per measurement dimension) against the 95 % chi-square band of a "
-            "consistent filter; see docs/outputs.md.</p>")  # fmt: skip
+    pop = "the trials neither lost nor inconsistent" if excl else "the trials not lost (inconsistent ones count)"
+    out = ["<h2>Results</h2>"]
+    if excl:
+        out.append('<p class="bad">This scenario sets <code>divergence.exclude_inconsistent: true</code>: trials '
+                   "flagged inconsistent (a truth-based test) are left out of the accuracy statistics.</p>")  # fmt: skip
+    out.append(html_table(heads, rows, left=2, caption=f"per-trial mean errors over {window}: 50th / 90th percentile "
+                          f"over {pop}; rates with their 95 % Wilson interval"))  # fmt: skip
+    out.append('<ul class="verdicts">' + "".join(items) + "</ul>")
+    if advice:
+        out.append('<h3>What went wrong, what to try</h3><ul class="advice">' + "".join(advice) + "</ul>")
+    out.append('<p class="note"><b>Lost</b>: the filter\'s own tests stopped it (NIS window, gate lock-out, '
+               "non-finite or not positive definite covariance, linear-algebra failure). <b>Inconsistent</b>: a "
+               "truth-based test (error bounds, NEES far beyond the claimed covariance) flagged it; the filter ran on "
+               "and its errors count. Consistency: median over the trials not lost of the time-averaged NEES per "
+               "degree of freedom (full n - 1, gauge-projected n - 4, per block; at most 2) and of the NIS per "
+               "measurement dimension (inside its 95 % band); docs/outputs.md.</p>")  # fmt: skip
+    return "".join(out)
 
 
 def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = None) -> str:
     """The report's HTML text; ``extra``: HTML blocks placed before the figures (the sensitivity section)."""
-    pt = percentile_table(data.trials, data.percentiles)
+    pt = percentile_table(data.trials, data.percentiles, data.exclude_inconsistent)
     case = thesis_case(data.name)
     types = data.filter_types
     window = data.window_start
@@ -465,42 +541,40 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
                 f"t &ge; {esc(fmt_value(window))} s; units: rho m, rho_dot m/s, omega deg/s, theta deg, k1 and k2 "
                 "dimensionless.</p>")  # fmt: skip
 
-    body.append(results_summary_html(data, pt))
-    verdicts = consistency_verdicts(data)
-    if verdicts:
-        body.append("<h2>Consistency</h2><ul>" + "".join(f"<li>{esc(v)}</li>" for v in verdicts) + "</ul>")
-        body.append("<p class=\"note\">Medians over the converged trials of the time-averaged (window) NEES per "
-                    "degree of freedom (error state n - 1, gauge-projected n - 4; docs/filters.md) and NIS per "
-                    "measurement dimension; a filter is called consistent when every NEES/dof is at most 2 and the NIS "
-                    "lies in the chi-square 95 % band of one trial's time average.</p>")  # fmt: skip
+    body.append(results_summary_html(data))
     body.append("<h2>Percentile tables</h2>")
     for label in data.filters:
         g = pt[pt["filter"] == label]
         if g.empty:
             continue
-        n, nd = int(g["trials"].iloc[0]), int(g["diverged"].iloc[0])
+        n = int(g["trials"].iloc[0])
+        kept = int(g.loc[g["population"] == "converged", "trials"].iloc[0])
+        nl = int(g["lost"].iloc[0]) if "lost" in g else int(g["diverged"].iloc[0])
+        ni = int(g["inconsistent"].iloc[0]) if "inconsistent" in g else 0
         kind = types.get(label, "?")
-        body.append(f"<h3>{esc(label)} ({esc(kind)}): {n - nd} of {n} trials converged, {nd} diverged</h3>")
+        body.append(f"<h3>{esc(label)} ({esc(kind)}): {kept} of {n} trials in the statistics; {nl} lost, "
+                    f"{ni} inconsistent</h3>")  # fmt: skip
+        cap = f"trials not lost ({kept})" + (", nor inconsistent" if data.exclude_inconsistent else "")
         if case is not None and thesis_role(kind) == "iekf":
             body.append(thesis_side(pt, label, case))
         else:
-            body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "converged"), caption="converged trials"))
-        if nd:
+            body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "converged"), caption=cap))
+        if kept < n:
             body.append(html_table(THESIS_HEADERS, percentile_rows(pt, label, "all"),
-                                   caption="all trials (a diverged trial counts as +inf)"))  # fmt: skip
+                                   caption=f"all {n} trials (a lost trial counts as +inf)"))  # fmt: skip
     if case is not None and not any(thesis_role(types.get(f)) == "iekf" for f in data.filters):
         th = thesis_percentiles(case)
         rows = [[fmt_num(r["percentile"])] + _cells([r[n] for n in ERROR_NAMES]) for r in th.to_dict("records")]
         cap = f"thesis Table {THESIS_TABLE_NUMBER[case]}: case {case}, IEKF, 100 trials"
         body.append(html_table(THESIS_HEADERS, rows, caption=cap))
 
-    body.append("<h2>Divergence</h2>")
+    body.append("<h2>Lost and inconsistent trials</h2>")
     drows = divergence_rows(data)
     if drows:
-        heads = ["filter", "reason", "trials", "trial ids", "median step", "median t [s]"]
-        body.append(html_table(heads, drows, left=2))
+        heads = ["filter", "flag", "kind of reason", "trials", "trial ids", "median step", "median t [s]"]
+        body.append(html_table(heads, drows, left=3))
     else:
-        body.append("<p>No trial diverged.</p>")
+        body.append("<p>No trial was lost or flagged inconsistent.</p>")
 
     body.append("<h2>Filter diagnostics</h2>")
     body.append(html_table(["filter", "median NEES (window mean)", "median NIS (window mean)",

@@ -1,67 +1,36 @@
-"""The answers a report leads with: per filter, how many trials converged, why the others
-diverged, the typical errors, and whether the filter is consistent, in words.
+"""The answers a report leads with, per filter (docs/outputs.md, The report):
 
-Consistency from the columns every run has:
+- how many trials were **lost** (the filter's own tests stopped it) and how many were flagged
+  **inconsistent** (truth-based; the filter ran on and its errors count), each as a rate with
+  its 95 % Wilson interval (``rundir.percentiles.wilson_interval``), and why, grouped by kind;
+- the accuracy: the 50th and 90th percentiles of each per-trial mean error over the trials in
+  the statistics (not lost; nor inconsistent with ``divergence.exclude_inconsistent``), with
+  their count;
+- one consistency verdict in words naming the blocks that fail (``outputs.consistency``:
+  median time-averaged NEES per degree of freedom of the full, gauge-projected and block error
+  states, and the NIS per measurement dimension against its band);
+- what to try when most trials are lost (:func:`remedies`).
 
-- **NEES**: ``nees_mean`` of ``trials.parquet`` (each trial's mean NEES over the error
-  window). For a consistent filter each step's NEES is chi-square with ``d = n - 1``
-  degrees of freedom (``n`` = state dimension; the unit quaternion takes one direction
-  out), so the average over ``N`` converged trials lies in the two-sided 95 % band
-  ``chi2.ppf([0.025, 0.975], N d) / N``. A trial's window mean averages correlated steps,
-  which only narrows its spread: this band is the widest (most lenient) one, so an
-  average outside it is a clear verdict.
-- **NIS**: from ``timeseries.parquet`` when present, each trial's mean over the window of
-  ``nis / nis_dof`` (the NIS per measurement dimension, 1 for a consistent filter),
-  averaged over the trials, against ``chi2.ppf([0.025, 0.975], N m) / (N m)`` with ``m``
-  the median measurement dimension.
+The NEES band of the mean over ``N`` trials (:func:`band`) is also what the figures over time draw.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-import pandas as pd
-from scipy.special import chdtri  # chi2.ppf(p, k) = chdtri(k, 1 - p), without importing scipy.stats
+
+from ..rundir import percentiles as pct
+from ..rundir.tables import columns_of
 
 LEVEL = 0.95
 
 
-@dataclass(frozen=True)
-class Check:
-    """One consistency statistic against its band: the average, the band, and the verdict."""
-
-    what: str  # "NEES" / "NIS per dimension"
-    value: float
-    expected: float
-    lo: float
-    hi: float
-    trials: int
-    dof: float
-    median: float = float("nan")  # the median trial's value: a few wild trials move the average, not this
-
-    @property
-    def state(self) -> str:
-        if not np.isfinite(self.value):
-            return "unknown"
-        return "high" if self.value > self.hi else "low" if self.value < self.lo else "inside"
-
-    def words(self) -> str:
-        band = f"95 % band [{self.lo:.3g}, {self.hi:.3g}] for a consistent filter over {self.trials} trials"
-        avg = f"average {self.what} {self.value:.3g} (expected {self.expected:.3g}; median trial {self.median:.3g})"
-        if self.state == "inside":
-            return f"{avg} is inside the {band}"
-        if self.state == "high":
-            return (f"{avg} is {self.value / self.expected:.3g} times too large, above the {band}: the filter is "
-                    "overconfident, its covariance understates the actual errors")  # fmt: skip
-        if self.state == "low":
-            return (f"{avg} is below the {band}: the filter is conservative, its covariance overstates the "
-                    "actual errors")  # fmt: skip
-        return f"{self.what}: no finite values"
-
-
 def band(trials: int, dof: float, level: float = LEVEL) -> tuple[float, float]:
     """Two-sided ``level`` band of the mean of ``trials`` chi-square(``dof``) variables."""
+    from scipy.special import chdtri  # chi2.ppf(p, k) = chdtri(k, 1 - p), without importing scipy.stats
+
     if trials < 1 or not dof > 0:
         return float("nan"), float("nan")
     a = 1.0 - level
@@ -69,83 +38,74 @@ def band(trials: int, dof: float, level: float = LEVEL) -> tuple[float, float]:
     return float(chdtri(k, 1 - a / 2) / trials), float(chdtri(k, a / 2) / trials)
 
 
-def nees_check(g: pd.DataFrame, state_dim: int | None) -> Check | None:
-    if not state_dim or "nees_mean" not in g:
-        return None
-    v = g.loc[~g["diverged"].astype(bool), "nees_mean"].to_numpy(float)
-    v = v[np.isfinite(v)]
-    d = state_dim - 1
-    lo, hi = band(v.size, d)
-    nan = float("nan")
-    return Check("NEES", float(v.mean()) if v.size else nan, float(d), lo, hi, int(v.size), float(d),
-                 float(np.median(v)) if v.size else nan)  # fmt: skip
-
-
-def nis_check(ts: pd.DataFrame | None, label: str, ok_trials: set[int], window_start: float | None) -> Check | None:
-    if ts is None or ts.empty or "nis_dof" not in ts:
-        return None
-    g = ts[(ts["filter"] == label) & (ts["nis_dof"] > 0) & ts["trial"].isin(ok_trials)]
-    if window_start is not None:
-        g = g[g["t"] >= window_start - 1e-9]
-    g = g[np.isfinite(g["nis"])]
-    if g.empty:
-        return None
-    per_trial = (g["nis"] / g["nis_dof"]).groupby(g["trial"]).mean().to_numpy(float)
-    m = float(np.median(g["nis_dof"]))
-    lo, hi = band(per_trial.size, m)
-    return Check("NIS per dimension", float(per_trial.mean()), 1.0, lo / m, hi / m, int(per_trial.size), m,
-                 float(np.median(per_trial)))  # fmt: skip
-
-
 @dataclass
 class FilterSummary:
     label: str
     kind: str
     trials: int
-    diverged: int
-    reasons: list[tuple[str, int]] = field(default_factory=list)
-    checks: list[Check] = field(default_factory=list)
+    lost: int
+    inconsistent: int
+    kept: int  # trials in the accuracy statistics
+    lost_kinds: list[tuple[str, int]] = field(default_factory=list)
+    inconsistent_kinds: list[tuple[str, int]] = field(default_factory=list)
+    lost_median_step: float = float("nan")  # the median step at which the lost trials were lost
 
-    @property
-    def converged(self) -> int:
-        return self.trials - self.diverged
+    def rate(self, k: int) -> str:
+        return pct.rate_text(k, self.trials)
 
-    @property
-    def consistent(self) -> bool | None:
-        """True / False when every / some available check says so; None without any."""
-        known = [c for c in self.checks if c.state != "unknown"]
-        return None if not known else all(c.state == "inside" for c in known)
-
-    def verdict(self) -> str:
-        """One sentence: the consistency verdict in words."""
-        if self.consistent is None:
-            return "consistency unknown: no NEES or NIS values"
-        bad = [c for c in self.checks if c.state in ("high", "low")]
-        if not bad:
-            return "consistent: " + "; ".join(c.words() for c in self.checks)
-        return "NOT consistent: " + "; ".join(c.words() for c in bad)
-
-    def divergence_words(self) -> str:
-        if not self.diverged:
-            return "no trial diverged"
-        top = ", ".join(f"{reason} ({n})" for reason, n in self.reasons[:3])
-        more = f", {len(self.reasons) - 3} other reason(s)" if len(self.reasons) > 3 else ""
-        return f"{self.diverged} diverged: {top}{more}"
+    def kinds_words(self, kinds: list[tuple[str, int]], top: int = 3) -> str:
+        shown = ", ".join(f"{k} ({n})" for k, n in kinds[:top])
+        return shown + (f", {len(kinds) - top} other kind(s)" if len(kinds) > top else "")
 
 
-def summarize(trials: pd.DataFrame, timeseries: pd.DataFrame | None, filters: list[str], types: dict[str, str],
-              state_dim: int | None, window_start: float | None, reason_of) -> list[FilterSummary]:  # fmt: skip
-    """One :class:`FilterSummary` per filter; ``reason_of`` maps a reason to its category."""
+def summarize(trials: Any, filters: list[str], types: dict[str, str],
+              exclude_inconsistent: bool = False) -> list[FilterSummary]:  # fmt: skip
+    """One :class:`FilterSummary` per filter from a trials table (a DataFrame, a pyarrow Table or columns: the run
+    path imports no pandas) with its ``lost*`` and ``inconsistent*`` columns (the ``diverged*`` aliases of older
+    runs are read as ``lost*``)."""
+    c = columns_of(trials)
+    pre = "lost" if "lost" in c else "diverged"
+    lost_all = pct.excluded(c)
+    inc_all = np.asarray(c["inconsistent"]).astype(bool) if "inconsistent" in c else np.zeros(lost_all.size, bool)
     out = []
     for label in filters:
-        g = trials[trials["filter"] == label]
-        div = g["diverged"].astype(bool)
-        reasons: list[tuple[str, int]] = []
-        if div.any() and "diverged_reason" in g:
-            counts = g.loc[div, "diverged_reason"].astype(str).map(reason_of).value_counts()
-            reasons = [(str(k), int(v)) for k, v in counts.items()]
-        s = FilterSummary(label, types.get(label, "?"), len(g), int(div.sum()), reasons)
-        ok = set(int(t) for t in g.loc[~div, "trial"])
-        s.checks = [c for c in (nees_check(g, state_dim), nis_check(timeseries, label, ok, window_start)) if c]
-        out.append(s)
+        g = np.asarray(c["filter"]) == label
+        lost, inc = lost_all & g, inc_all & g
+        kept = int((g & ~(lost | (inc & exclude_inconsistent))).sum())
+        step = float(np.median(c[f"{pre}_step"][lost])) if lost.any() and f"{pre}_step" in c else float("nan")
+        kinds = [(k, len(v)) for k, v in pct.reasons_by_kind(c, lost, f"{pre}_reason").items()] \
+            if lost.any() and f"{pre}_reason" in c else []  # fmt: skip
+        ikinds = [(k, len(v)) for k, v in pct.reasons_by_kind(c, inc, "inconsistent_reason").items()] \
+            if inc.any() else []  # fmt: skip
+        out.append(FilterSummary(label, types.get(label, "?"), int(g.sum()), int(lost.sum()), int(inc.sum()), kept,
+                                 kinds, ikinds, step))  # fmt: skip
+    return out
+
+
+def remedies(s: FilterSummary, filter_config: dict | None) -> list[str]:
+    """What went wrong for a filter that lost most of its trials, and the documented remedies (docs/filters.md)."""
+    if s.trials == 0 or 2 * s.lost <= s.trials:
+        return []
+    cfg = filter_config or {}
+    top = s.lost_kinds[0][0] if s.lost_kinds else ""
+    out = []
+    when = f" (median lost step {s.lost_median_step:g})" if np.isfinite(s.lost_median_step) else ""
+    if top.startswith("filter lost: no feature measured"):
+        out.append(f"{s.label} loses {s.lost} of {s.trials} trials{when} because its cameras measured no feature "
+                   "for a whole window: check the camera's field of view and range, the feature points (inside the "
+                   "body, hidden by occlusion?) and the tracker's dropouts; `spmc validate` warns when no feature is "
+                   "ever in view.")  # fmt: skip
+    elif top.startswith("filter lost: its gate rejected"):
+        out.append(f"{s.label} loses {s.lost} of {s.trials} trials{when} to its own gate (it rejected most features "
+                   "for a whole window): the measurement noise or the process noise is too small for the actual "
+                   "errors, or the gate too tight; try a larger `gating.probability`, `process_noise`, or check "
+                   "`measurements`; docs/filters.md.")  # fmt: skip
+    elif cfg.get("type") == "ekf" and cfg.get("first_update", "ekf") != "iterated":
+        out.append(f"{s.label} loses {s.lost} of {s.trials} trials{when}, mostly '{top}': from a wide prior its "
+                   "single-step first update linearizes far from the truth and it does not recover. Try "
+                   "`first_update: iterated` on this filter (its first update iterated as the IEKF's) or "
+                   "`initial_estimate: measurements` (start from the first stereo frame); docs/filters.md.")  # fmt: skip
+    elif top:
+        out.append(f"{s.label} loses {s.lost} of {s.trials} trials{when}, mostly '{top}'; docs/filters.md (Lost and "
+                   "inconsistent trials) lists what each reason means.")  # fmt: skip
     return out

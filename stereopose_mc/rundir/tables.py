@@ -33,15 +33,21 @@ ERROR_LABELS = {"e_rho": "rho [m]", "e_rho_dot": "rho_dot [m/s]", "e_omega": "om
 # (key "unit") and listed in docs/outputs.md; "-" = dimensionless, a count, an index, a label or a flag.
 COLUMN_UNITS = {
     "trial": "-", "filter": "-", "seed": "-", **ERROR_UNITS, **{f"final_{n}": u for n, u in ERROR_UNITS.items()},
-    "diverged": "-", "diverged_step": "-", "diverged_reason": "-", "iterations_mean": "-",
+    "lost": "-", "lost_step": "-", "lost_reason": "-", "inconsistent": "-", "inconsistent_step": "-",
+    "inconsistent_reason": "-", "diverged": "-", "diverged_step": "-", "diverged_reason": "-", "iterations_mean": "-",
     "iekf_unconverged_steps": "-", "nees_mean": "-", "nis_mean": "-",
     "step": "-", "t": "s", "nees": "-", "nis": "-", "nis_dof": "-", "iterations": "-", "converged": "-", "gated": "-",
     "gated_features": "-", "dropped_features": "-", "outlier_features": "-",
     "nis_ratio_mean": "-", "nis_dof_mean": "-", "final_sigma_ratio_k1": "-", "final_sigma_ratio_k2": "-",
-    "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
+    "nees_dof": "-", "nees_gauge_dof": "-", "inside_3sigma": "-", "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
 }  # fmt: skip
 NEES_PARTS = tuple(k for k in es.nees_dof(es.BLOCK_PROBE_N) if k != "nees")  # nees_<block>, nees_gauge
 COLUMN_UNITS.update({n: "-" for n in NEES_PARTS} | {f"{n}_mean": "-" for n in NEES_PARTS})
+# the per-axis error-state components of the time series (err_<c>, sigma_<c>) and their units: the attitude chart's
+# d rho, d rho_dot, d omega, the attitude error vector a (theta), d k (core.errorstate; mc.trial.axis_errors)
+AXES = tuple(f"{b}_{c}" for b in ("rho", "rho_dot", "omega", "theta") for c in "xyz") + ("k1", "k2")
+AXIS_UNITS = {a: u for a, u in zip(AXES, ["m"] * 3 + ["m/s"] * 3 + ["deg/s"] * 3 + ["deg"] * 3 + ["-"] * 2)}
+COLUMN_UNITS.update({f"{p}_{a}": u for a, u in AXIS_UNITS.items() for p in ("err", "sigma")})
 
 
 def columns_of(table: Any) -> Columns:

@@ -159,7 +159,7 @@ def test_every_step_of_the_mekf_and_iterated_first_update_agrees(monkeypatch, er
 
     both = _Both(error_state)
     monkeypatch.setattr(trial, "step_functions", lambda kernels: both)
-    over = {**SHORT, "filters": [{"type": "mekf"}, {"type": "ekf", "first_update": "iterated"},
+    over = {**SHORT, "filters": [{"type": "mekf", "iterated": True}, {"type": "ekf", "first_update": "iterated"},
                                  {"type": "iekf", "step_control": "levenberg_marquardt", "name": "iekf_lm"}]}
     scn, setup, truth, exact, filters = _prepared(error_state=error_state, **over)
     run_chunk(scn.seed, np.arange(6), setup, truth, exact, filters, Bounds(), kernels="both")

@@ -108,7 +108,7 @@ def test_ekf_mekf_ukf_agree_near_linearity():
                             "feature_points_m2": 1e-3, "k": 1e-3},
         filters=[{"type": "ekf", "error_state": "full"}, {"type": "ekf", "name": "ekf_aligned"},
                  {"type": "mekf", "iterated": False, "error_state": "attitude"},
-                 {"type": "mekf", "name": "mekf_aligned", "iterated": False},
+                 {"type": "mekf", "name": "mekf_aligned", "iterated": False, "error_state": "aligned"},
                  {"type": "ukf", "error_state": "attitude"}, {"type": "ukf", "name": "ukf_aligned"}])))  # fmt: skip
     setup = setup_of(scn)
     truth = simulate_truth(setup)

@@ -198,3 +198,21 @@ def test_dispersed_campaign_starts_from_measurements_independently_of_chunking(t
     s0a = a[a["step"] == 0].reset_index(drop=True)["e_rho"]
     s0b = b[b["step"] == 0].reset_index(drop=True)["e_rho"]
     assert ok.any() and not np.allclose(s0a.to_numpy(), s0b.to_numpy(), equal_nan=True)
+
+
+def test_dispersed_runs_have_every_nees_and_its_degrees_of_freedom(runs):
+    """Issue 33 item 3: block and gauge-projected NEES finite for every trial not lost (each trial's own truth),
+    equal to the window means of the time series, with ``nees_dof = n - 1`` and ``nees_gauge_dof = n - 4``."""
+    root, _, _ = runs
+    df = pd.read_parquet(root / "a" / "trials.parquet")
+    ts = pd.read_parquet(root / "a" / "timeseries.parquet")
+    ok = df[~df["lost"]]
+    cols = [c for c in df if c.startswith("nees_") and c.endswith("_mean")]
+    assert len(cols) == 8 and len(ok) > 0
+    assert np.isfinite(ok[cols].to_numpy(float)).all()
+    n = 13 + 3 * 5 + 2  # caseB: five feature points
+    assert (ok["nees_dof"] == n - 1).all() and (ok["nees_gauge_dof"] == n - 4).all()
+    w = ts[(ts["t"] >= 5.0 - 1e-9)].groupby(["trial", "filter"])[["nees_rho", "nees_gauge"]].mean()
+    for r in ok.itertuples():
+        np.testing.assert_allclose([r.nees_rho_mean, r.nees_gauge_mean], w.loc[(r.trial, r.filter)].to_numpy(),
+                                   rtol=1e-12)  # fmt: skip

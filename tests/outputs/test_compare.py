@@ -40,7 +40,7 @@ def base(tmp_path):
 def test_same_table_exits_0(base):
     r = spmc("compare", base, base)
     assert r.exit_code == 0, r.output
-    assert "**OK**: 0 of 128 cells out of tolerance" in r.output  # 2 filters x 2 pops x 4 pcts x 8 columns
+    assert "**OK**: 0 of 160 cells out of tolerance" in r.output  # 2 filters x 2 pops x 4 pcts x 10 columns
 
 
 def test_perturbed_cell_exits_1_and_is_shown(base, tmp_path):
@@ -57,11 +57,11 @@ def test_perturbed_cell_exits_1_and_is_shown(base, tmp_path):
     assert cells[:4] == ["iekf", "converged", "90", "e_theta"]
     assert float(cells[4]) == pytest.approx(old * (1 + 1e-5), rel=1e-9) and float(cells[5]) == pytest.approx(old)
     assert float(cells[7]) == pytest.approx(1e-5, rel=1e-3)
-    assert "**FAIL**: 1 of 128" in r.output
+    assert "**FAIL**: 1 of 160" in r.output
     # within a looser tolerance it passes, and --all lists every cell
     assert spmc("compare", pert, base, "--rtol", "1e-4").exit_code == 0
     r = spmc("compare", pert, base, "--all")
-    assert sum(ln.startswith("| iekf") or ln.startswith("| ekf") for ln in r.output.splitlines()) == 128
+    assert sum(ln.startswith("| iekf") or ln.startswith("| ekf") for ln in r.output.splitlines()) == 160
     # only the 'all' population: the perturbed converged cell is not compared
     assert spmc("compare", pert, base, "--population", "all").exit_code == 0
 

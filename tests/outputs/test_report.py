@@ -19,8 +19,8 @@ from stereopose_mc.outputs import figures as figs
 from stereopose_mc.outputs import report as rep
 from stereopose_mc.rundir.tables import ERROR_NAMES
 
-FULL_STEMS = ["hist-iekf", "hist-ekf", "diff-ekf-iekf", "time-iekf", "time-ekf", "nees-iekf", "nees-ekf",
-              "nis-iekf", "nis-ekf", "runtime"]  # fmt: skip
+FULL_STEMS = ["hist-iekf", "hist-ekf", "diff-ekf-iekf", "time-iekf", "axes-iekf", "time-ekf", "axes-ekf", "nees-iekf",
+              "nees-ekf", "nis-iekf", "nis-ekf", "runtime"]  # fmt: skip
 PNG_SIG = b"\x89PNG\r\n\x1a\n"
 
 
@@ -81,9 +81,9 @@ def test_report_tables_come_from_trials_parquet(run_dir):
     t = pd.read_parquet(run_dir / "trials.parquet")
     for label in ("iekf", "ekf"):
         g = t[t["filter"] == label]
-        nd = int(g["diverged"].sum())
-        assert f"{len(g) - nd} of {len(g)} trials converged, {nd} diverged" in text
-    v = np.sort(t.loc[(t["filter"] == "iekf") & ~t["diverged"], "e_rho"].to_numpy())
+        nl, ni = int(g["lost"].sum()), int(g["inconsistent"].sum())
+        assert f"{len(g) - nl} of {len(g)} trials in the statistics; {nl} lost, {ni} inconsistent" in text
+    v = np.sort(t.loc[(t["filter"] == "iekf") & ~t["lost"], "e_rho"].to_numpy())
     p50 = v[int(np.ceil(0.5 * v.size)) - 1]  # inverted CDF: smallest value with F >= 0.5
     assert f'<td class="l">50</td><td>{p50:.3g}</td>' in text
     # the scenario summary and run facts
@@ -264,11 +264,13 @@ def test_consistency_mean_over_alive_trials_and_per_step_dof():
     from scipy.stats import chi2
 
     assert c.lo[1] == pytest.approx(chi2.ppf(0.025, 60) / 2) and c.hi[0] == pytest.approx(chi2.ppf(0.975, 90) / 3)
+    # NIS per dimension: sum(nis) / sum(nis_dof) over the live trials, band chi2.ppf(., D) / D with D = sum(nis_dof)
     c = figs.consistency(ts, "f", "nis", None)
     assert c.M.tolist() == [0, 2, 2] and np.isnan(c.mean[0]) and np.isnan(c.lo[0])
-    assert c.dof.tolist() == [0, 4, 6]
-    assert c.hi[2] == pytest.approx(chi2.ppf(0.975, 12) / 2)
-    assert c.inside == (int(np.sum([(2.0 >= c.lo[1]) & (2.0 <= c.hi[1]), (6.0 >= c.lo[2]) & (6.0 <= c.hi[2])])), 2)
+    assert c.mean[1:] == pytest.approx([4.0 / 8, 12.0 / 12])
+    assert c.dof[1:].tolist() == [1.0, 1.0]
+    assert c.lo[1] == pytest.approx(chi2.ppf(0.025, 8) / 8) and c.hi[2] == pytest.approx(chi2.ppf(0.975, 12) / 12)
+    assert c.inside == (int(np.sum([(0.5 >= c.lo[1]) & (0.5 <= c.hi[1]), (1.0 >= c.lo[2]) & (1.0 <= c.hi[2])])), 2)
 
 
 def test_time_percentiles_ignore_diverged_trials():
@@ -291,13 +293,22 @@ def test_compute_time_table():
 def test_divergence_reasons_grouped_without_numbers(run_dir, tmp_path):
     d = copy_run(run_dir, tmp_path / "d", drop=("timeseries.parquet",))
     t = pd.read_parquet(d / "trials.parquet")
-    t["diverged"], t["diverged_step"], t["diverged_reason"] = False, -1, ""  # only the two injected below
+    for flag in ("lost", "inconsistent"):  # only the ones injected below
+        t[flag], t[f"{flag}_step"], t[f"{flag}_reason"] = False, -1, ""
     sel = (t["filter"] == "ekf") & t["trial"].isin([1, 4])
-    t.loc[sel, "diverged"] = True
-    t.loc[sel, "diverged_step"] = [3, 5]
-    t.loc[sel, "diverged_reason"] = ["error bound exceeded: e_rho = 1.2e+03 > 1000",
-                                     "error bound exceeded: e_rho = 2e+03 > 1000"]  # fmt: skip
+    t.loc[sel, "inconsistent"] = True
+    t.loc[sel, "inconsistent_step"] = [3, 5]
+    t.loc[sel, "inconsistent_reason"] = ["inconsistent: error bound exceeded: e_rho = 1.2e+03 > 1000",
+                                         "inconsistent: error bound exceeded: e_rho = 2e+03 > 1000"]  # fmt: skip
+    sel = (t["filter"] == "iekf") & t["trial"].isin([0, 2, 3])
+    t.loc[sel, "lost"] = True
+    t.loc[sel, "lost_step"] = [12, 14, 19]
+    t.loc[sel, "lost_reason"] = ["filter lost: mean NIS over 10 steps = 300 x its dimension > 100",
+                                 "filter lost: mean NIS over 10 steps = 1.2e+03 x its dimension > 100",
+                                 "covariance not positive definite"]  # fmt: skip
     t.to_parquet(d / "trials.parquet")
     rows = rep.divergence_rows(rep.load_run(d))
-    assert rows == [["ekf", "error bound exceeded: e_rho", "2", "1, 4", "4", "4"]]
+    assert rows == [["iekf", "lost", "filter lost: mean NIS", "2", "0, 2", "13", "13"],
+                    ["iekf", "lost", "covariance not positive definite", "1", "3", "19", "19"],
+                    ["ekf", "inconsistent (flag)", "inconsistent: error bound exceeded: e_rho", "2", "1, 4", "4", "4"]]
     shutil.rmtree(d)

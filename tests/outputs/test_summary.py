@@ -8,11 +8,11 @@ import pandas as pd
 from stereopose_mc.outputs import summary as sm
 
 
-def trials_frame(nees: np.ndarray, diverged=None, reasons=None, label="iekf") -> pd.DataFrame:
-    n = len(nees)
-    div = np.zeros(n, bool) if diverged is None else np.asarray(diverged)
-    return pd.DataFrame({"trial": np.arange(n), "filter": label, "diverged": div, "nees_mean": nees,
-                         "diverged_reason": reasons if reasons is not None else [""] * n})  # fmt: skip
+def trials_frame(lost, incons, lost_reasons, incons_reasons, label="iekf") -> pd.DataFrame:
+    n = len(lost)
+    return pd.DataFrame({"trial": np.arange(n), "filter": label, "lost": lost, "lost_reason": lost_reasons,
+                         "lost_step": np.where(lost, 3, -1), "inconsistent": incons,
+                         "inconsistent_reason": incons_reasons})  # fmt: skip
 
 
 def test_band_covers_95_percent_of_means_of_chi_square_draws():
@@ -26,21 +26,29 @@ def test_band_covers_95_percent_of_means_of_chi_square_draws():
     assert lo < d < hi
 
 
-def test_verdicts_in_words():
-    rng = np.random.default_rng(2)
-    good = (rng.standard_normal((50, 29)) ** 2).sum(axis=1)  # NEES of a consistent filter, n - 1 = 29 dof
-    s = sm.summarize(trials_frame(good), None, ["iekf"], {"iekf": "iekf"}, 30, None, str)[0]
-    assert s.consistent is True and s.verdict().startswith("consistent: average NEES")
-    bad = trials_frame(good * 3.0, diverged=[True] * 5 + [False] * 45,
-                       reasons=["filter lost: mean NIS = 9"] * 3 + ["covariance not positive definite"] * 2 + [""] * 45)
-    s = sm.summarize(bad, None, ["iekf"], {"iekf": "iekf"}, 30, None, lambda r: r.split(" = ")[0])[0]
-    assert s.consistent is False and s.converged == 45
-    assert "NOT consistent" in s.verdict() and "overconfident" in s.verdict()
-    assert s.divergence_words() == "5 diverged: filter lost: mean NIS (3), covariance not positive definite (2)"
-    low = sm.summarize(trials_frame(good / 3.0), None, ["iekf"], {}, 30, None, str)[0]
-    assert "conservative" in low.verdict()
-    none = sm.summarize(trials_frame(good), None, ["iekf"], {}, None, None, str)[0]
-    assert none.consistent is None and "unknown" in none.verdict()
+def test_counts_rates_kinds_and_remedies():
+    n = 20
+    lost = np.arange(n) < 12
+    incons = (np.arange(n) >= 10) & (np.arange(n) < 15)
+    lr = ["filter lost: mean NIS over 10 steps = 300 x its dimension > 100"] * 11 + ["covariance not positive definite"] \
+        + [""] * 8
+    ir = [""] * 10 + ["inconsistent: gauge-projected NEES >= 1e+06 over 10 steps > 10 x ..."] * 5 + [""] * 5
+    t = trials_frame(lost, incons, lr, ir)
+    s = sm.summarize(t, ["iekf"], {"iekf": "ekf"})[0]
+    assert (s.trials, s.lost, s.inconsistent, s.kept) == (20, 12, 5, 8)
+    assert s.lost_kinds == [("filter lost: mean NIS", 11), ("covariance not positive definite", 1)]
+    assert s.inconsistent_kinds == [("inconsistent: gauge-projected NEES", 5)]
+    assert s.rate(12) == "12 of 20 (60 %, 95 % CI 39-78 %)"
+    assert sm.summarize(t, ["iekf"], {}, exclude_inconsistent=True)[0].kept == 5  # 3 not lost but inconsistent
+    r = sm.remedies(s, {"type": "ekf"})
+    assert len(r) == 1 and "`first_update: iterated`" in r[0] and "`initial_estimate: measurements`" in r[0]
+    assert "median lost step 3" in r[0]
+    assert sm.remedies(s, {"type": "ekf", "first_update": "iterated"})[0].count("first_update") == 0
+    blind = sm.summarize(trials_frame(lost, incons, ["filter lost: no feature measured at any of 10 steps"] * n, ir),
+                         ["iekf"], {})[0]  # fmt: skip
+    assert "measured no feature" in sm.remedies(blind, {"type": "ekf"})[0]
+    few = sm.summarize(trials_frame(lost & (np.arange(n) < 3), incons, lr, ir), ["iekf"], {})[0]
+    assert sm.remedies(few, {"type": "ekf"}) == []  # a minority lost: nothing to advise
 
 
 def test_report_leads_with_results_and_folds_the_scenario(run_dir):
@@ -50,7 +58,7 @@ def test_report_leads_with_results_and_folds_the_scenario(run_dir):
     results = text.split("<h2>Results</h2>")[1].split("<h2>")[0]
     for label in ("iekf", "ekf"):
         assert f"<b>{label}</b>:" in results
-    assert "consistent" in results and "average NEES" in results
+    assert "consistent" in results and "NEES/dof" in results and "95 % Wilson interval" in results
     tail = text.split("<h2>Scenario and run</h2>")[1]
     assert tail.count("<details>") == 2 and "feature_points_m" in tail
 

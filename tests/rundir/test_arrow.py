@@ -129,7 +129,8 @@ def test_percentiles_csv_and_markdown_match_pandas():
                         v = g[name].to_numpy(float)
                         v = np.where(div | ~np.isfinite(v), np.inf, v) if pop == "all" else v[~div & np.isfinite(v)]
                         row.append(np.percentile(v, p, method="inverted_cdf"))
-                    row += [len(g) - (pop == "converged") * int(div.sum()), int(div.sum())]
+                    # trials in the population, lost, inconsistent (no such column: 0), diverged (= lost)
+                    row += [len(g) - (pop == "converged") * int(div.sum()), int(div.sum()), 0, int(div.sum())]
                     ref.append(row)
         got = list(zip(*(pt[k].tolist() for k in pt)))
         assert [list(r) for r in got] == ref
