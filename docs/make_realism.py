@@ -112,7 +112,7 @@ def run_all(trials: int, jobs: int) -> float:
 
 
 def summary(name: str) -> dict:
-    """Medians and 90th percentiles (converged trials), lost trials, gating counts of one run."""
+    """Medians and 90th percentiles (trials not lost), lost trials, gating counts of one run."""
     t = pd.read_parquet(RUNS / name / "trials.parquet")
     pt = percentile_table(t, [50, 90])
     conv = pt[pt["population"] == "converged"].set_index("percentile")
@@ -281,12 +281,13 @@ Features in view per step (of {real["target"]["feature_points"]["sample_on_surfa
 
 ## Errors (per-trial means over t >= 10 s)
 
-Medians over the converged trials, and the number of trials lost (diverged or locked
-out by the gate, docs/filters.md):
+Medians over the trials not lost (trials flagged inconsistent by the truth-based tests count:
+docs/filters.md, Lost and inconsistent trials), and the number of trials lost (the filter's
+own tests: NIS window, gate lock-out, ...):
 
 {table(rows, what, "p50")}
 
-90th percentiles (converged trials):
+90th percentiles (trials not lost):
 
 {table(rows, what, "p90")}
 
