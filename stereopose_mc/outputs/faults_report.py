@@ -7,9 +7,14 @@ and the features the filter's gate rejected, as totals and per-trial medians.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from .report import RunData, esc, html_table
+from .html import esc, html_table
+
+if TYPE_CHECKING:
+    from .report import RunData
 
 COLUMNS = ("dropped_features", "outlier_features", "gated_features")
 

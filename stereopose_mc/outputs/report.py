@@ -13,8 +13,6 @@ filter with the median and 90th percentile of each error, linking to each report
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import os
 import re
@@ -26,13 +24,14 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .. import __version__
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
 from ..filters.registry import thesis_role
 from ..rundir import store
 from ..rundir.percentiles import percentile_table, reason_kind, wilson_interval
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
+from . import faults_report
 from . import figures as figs
+from .html import cells as _cells, esc, figure_html, fmt_num, fmt_value, html_table, page
 from . import sensitivity_report
 from .summary import remedies, summarize
 
@@ -218,77 +217,6 @@ def discover(path: Path) -> tuple[list[Path], bool]:
 
 # --------------------------------------------------------------------------- HTML helpers
 
-CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:2em auto;max-width:1200px;
- padding:0 1em;color:#222;line-height:1.4}
-h1{border-bottom:2px solid #444}h2{border-bottom:1px solid #bbb;margin-top:2em}
-table{border-collapse:collapse;margin:.5em 0 1em 0;font-size:.9em}
-th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}th{background:#f0f0f0}
-td.l,th.l{text-align:left}.side{display:flex;flex-wrap:wrap;gap:2em;align-items:flex-start}
-.note{color:#555;font-size:.9em}figure{margin:1em 0 2em 0}figure img{max-width:100%;border:1px solid #ddd}
-figcaption{font-size:.9em;color:#444}code{background:#f4f4f4;padding:0 .2em}
-.ok{color:#1b7837;font-weight:600}.bad{color:#b2182b;font-weight:600}.verdicts li{margin:.3em 0}
-.verdicts .ok,.verdicts .bad{font-weight:normal}
-details{margin:.5em 0}summary{cursor:pointer;font-weight:600}.ci{color:#666;font-size:.85em;white-space:nowrap}.ci0{white-space:nowrap}
-"""
-
-
-def esc(v: Any) -> str:
-    return html.escape(str(v), quote=True)
-
-
-def fmt_num(v: Any, digits: int = 3) -> str:
-    """Numbers with ``digits`` significant digits; ``inf`` / ``nan`` spelled out."""
-    if isinstance(v, (bool, np.bool_)):
-        return str(bool(v))
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        if np.isnan(v):
-            return "nan"
-        if np.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return f"{float(v):.{digits}g}"
-    return str(v)
-
-
-def fmt_value(v: Any) -> str:
-    """Config values: lists as ``[a, b]``, ``None`` as ``-``."""
-    if v is None:
-        return "-"
-    if isinstance(v, list):
-        return "[" + ", ".join(fmt_value(x) for x in v) + "]"
-    if isinstance(v, float):
-        return f"{v:g}"
-    return str(v)
-
-
-def html_table(headers: list[str], rows: list[list[Any]], left: int = 1, caption: str | None = None) -> str:
-    """An HTML table; the first ``left`` columns are left-aligned; cells are escaped."""
-    cls = lambda i: ' class="l"' if i < left else ""  # noqa: E731
-    out = ["<table>"]
-    if caption:
-        out.append(f"<caption>{esc(caption)}</caption>")
-    out.append("<tr>" + "".join(f"<th{cls(i)}>{esc(h)}</th>" for i, h in enumerate(headers)) + "</tr>")
-    for r in rows:
-        out.append("<tr>" + "".join(f"<td{cls(i)}>{c}</td>" for i, c in enumerate(r)) + "</tr>")
-    out.append("</table>")
-    return "\n".join(out)
-
-
-def _cells(values: list[Any]) -> list[str]:
-    return [esc(fmt_num(v)) for v in values]
-
-
-def data_uri_png(path: Path) -> str:
-    return "data:image/png;base64," + base64.b64encode(Path(path).read_bytes()).decode("ascii")
-
-
-def page(title: str, body: list[str]) -> str:
-    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
-            f"<title>{esc(title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n" + "\n".join(body)
-            + f"\n<p class=\"note\">Written by stereopose_mc {esc(__version__)}.</p>\n</body>\n</html>\n")  # fmt: skip
-
 
 # --------------------------------------------------------------------------- report sections
 
@@ -453,14 +381,6 @@ def diagnostics_rows(data: RunData) -> list[list[str]]:
     return rows
 
 
-def _figure_html(f: figs.FigureFile, root: Path) -> str:
-    png_rel = os.path.relpath(f.png, root)
-    svg_rel = os.path.relpath(f.svg, root)
-    return (f'<figure id="{esc(f.key)}"><img alt="{esc(f.title)}" src="{data_uri_png(f.png)}">'
-            f"<figcaption><b>{esc(f.title)}.</b> {esc(f.caption)} Files: <code>{esc(png_rel)}</code>, "
-            f"<code>{esc(svg_rel)}</code>.</figcaption></figure>")  # fmt: skip
-
-
 def rate_cell(k: int, n: int) -> str:
     """A rate as a table cell: ``k / n`` and the percentage, then its 95 % Wilson interval."""
     if n <= 0:
@@ -580,8 +500,6 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
     body.append(html_table(["filter", "median NEES (window mean)", "median NIS (window mean)",
                             "mean IEKF iterations per step", "trials with unconverged IEKF steps"],
                            diagnostics_rows(data)))  # fmt: skip
-    from . import faults_report  # noqa: PLC0415 (it imports this module)
-
     body += faults_report.section(data)
 
     body.append("<h2>Compute time per trial</h2>")
@@ -600,7 +518,7 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
     body += extra or []
     body.append("<h2>Figures</h2>")
     for f in fs.figures:
-        body.append(_figure_html(f, data.path))
+        body.append(figure_html(f, data.path))
     notes = data.notes + fs.notes
     if notes:
         body.append("<h2>Notes</h2><ul>" + "".join(f"<li>{esc(n)}</li>" for n in notes) + "</ul>")

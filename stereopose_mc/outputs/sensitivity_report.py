@@ -19,6 +19,7 @@ from ..rundir.tables import ERROR_LABELS
 from ..studies import sensitivity as sens
 from ..studies.figure_files import save_figure
 from . import figures as figs
+from .html import esc, html_table
 from ..rundir import store
 
 TOP_SCATTER = 6
@@ -77,8 +78,6 @@ def _fmt(v: float, digits: int = 2) -> str:
 
 def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str]) -> tuple[list[str], list[figs.FigureFile]]:
     """HTML blocks and figures of the sensitivity analysis (empty for a run without dispersions)."""
-    from .report import esc, html_table
-
     if not config.get("dispersions"):
         return [], []
     try:

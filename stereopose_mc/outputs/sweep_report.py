@@ -21,6 +21,8 @@ from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from ..studies import sweep as sw
 from ..studies.figure_files import save_figure
 from . import figures as figs
+from .html import esc, figure_html, fmt_num, html_table, page
+from .report import build_index, build_run_report
 
 
 def _numeric(values: list) -> bool:
@@ -65,7 +67,6 @@ def sweep_figure(summary: pd.DataFrame, spec: dict, label: str, x_axis: int = 0)
 
 def build_sweep_report(out: Path) -> Path:
     """Write ``sweep.csv``, the sweep figures, every point's report, ``index.html`` and ``report.html``."""
-    from .report import build_index, build_run_report, esc, fmt_num, html_table, page, _figure_html
 
     out = Path(out)
     spec = sw.load_sweep(out)
@@ -102,7 +103,7 @@ def build_sweep_report(out: Path) -> Path:
         x_path = spec["axes"][k]["path"]
         stem = f"sweep-{figs.safe_name(label)}-{figs.safe_name(x_path)}"
         png, svg = save_figure(sweep_figure(summary, spec, label, k), fig_dir, stem)
-        body.append(_figure_html(figs.FigureFile(stem, f"{label} against {x_path}",
+        body.append(figure_html(figs.FigureFile(stem, f"{label} against {x_path}",
                                                  "Lines: medians; bands: 10-90 % of the converged trials; "
                                                  "bottom right: share of diverged trials.", png, svg), out))  # fmt: skip
     path = out / "report.html"

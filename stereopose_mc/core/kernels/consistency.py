@@ -208,6 +208,17 @@ def _put(cnt, cols, vals, r, c, v):
 
 
 @njit(**_JIT)
+def _put_cross(cnt, cols, vals, r, c, v):
+    """Append the non-zeros of the block ``M[r:r+3, c:c+3] = [v x]`` (the cross-product matrix), row by row."""
+    _put(cnt, cols, vals, r, c + 1, -v[2])
+    _put(cnt, cols, vals, r, c + 2, v[1])
+    _put(cnt, cols, vals, r + 1, c, v[2])
+    _put(cnt, cols, vals, r + 1, c + 2, -v[0])
+    _put(cnt, cols, vals, r + 2, c, -v[1])
+    _put(cnt, cols, vals, r + 2, c + 1, v[0])
+
+
+@njit(**_JIT)
 def _forward_r(R, b, out):
     """``out = L^-1 b`` for ``P = L L^T`` given as its square root ``R = J L^T`` (``P = R^T R``: the rows of the upper
     factor ``L^T`` in reverse order, as the compiled update gives them): forward substitution, ``L[i, k] = R[n - 1 -
@@ -283,13 +294,7 @@ def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
         for c in range(3):
             _put(cnt, cols, vals, E_ROT + r, E_ROT + c, D[r, c])  # a = D delta
     # [v x] on e_omega in rho_dot
-    d, o = E_RHO_DOT, E_OMEGA
-    _put(cnt, cols, vals, d, o + 1, -vh[2])
-    _put(cnt, cols, vals, d, o + 2, vh[1])
-    _put(cnt, cols, vals, d + 1, o, vh[2])
-    _put(cnt, cols, vals, d + 1, o + 2, -vh[0])
-    _put(cnt, cols, vals, d + 2, o, -vh[1])
-    _put(cnt, cols, vals, d + 2, o + 1, vh[0])
+    _put_cross(cnt, cols, vals, E_RHO_DOT, E_OMEGA, vh)
     for r in range(3):
         for c in range(3):
             Wp[r, c] = -D[r, c] / N
@@ -303,13 +308,7 @@ def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
                 _put(cnt, cols, vals, E_RHO_DOT + r, E_POINTS + VEC * i + c, Wp[3 + r, c])
             _put(cnt, cols, vals, E_POINTS + VEC * i + r, E_POINTS + VEC * i + r, 1.0)
         # [P_i x] on delta
-        r, a = E_POINTS + VEC * i, E_ROT
-        _put(cnt, cols, vals, r, a + 1, -p[2])
-        _put(cnt, cols, vals, r, a + 2, p[1])
-        _put(cnt, cols, vals, r + 1, a, p[2])
-        _put(cnt, cols, vals, r + 1, a + 2, -p[0])
-        _put(cnt, cols, vals, r + 2, a, -p[1])
-        _put(cnt, cols, vals, r + 2, a + 1, p[0])
+        _put_cross(cnt, cols, vals, E_POINTS + VEC * i, E_ROT, p)
     for j in range(ne - K_SIZE, ne):
         _put(cnt, cols, vals, j, j, 1.0)
 
