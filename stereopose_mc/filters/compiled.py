@@ -184,8 +184,8 @@ def _measurer(setup: Setup, step: relnav.StepMeasurement):
 
 def measurement_model(setup: Setup, step: relnav.StepMeasurement):
     """``relnav.measurement_model`` on the compiled model (``model.measure_batch``, ``H`` made dense): the same
-    ``measure(x, rows, jac)``, the same ``h`` and ``H`` to round-off (1e-13 relative), without numpy's cost per
-    call on a few trials (~0.55 ms for one trial of case B: 70 % of numpy's update there)."""
+    ``measure(x, rows, jac)``, the same ``h`` and ``H`` to round-off (1e-13 relative), without numpy's fixed cost
+    per call, which dominates an update of a few trials."""
     _, nd, ndd = _leader(setup.orbit, float(step.t))
     nd, ndd = float(nd[0]), float(ndd[0])
     model = step_model(setup, np.flatnonzero(step.visible).astype(np.int64), nd, ndd)
