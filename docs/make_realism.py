@@ -27,6 +27,7 @@ import yaml
 from stereopose_mc.config import load_scenario
 from stereopose_mc.mc import engine
 from stereopose_mc.rundir.percentiles import percentile_table
+from stereopose_mc.mc.cores import available_cores
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "mission-realistic.yaml"
@@ -95,7 +96,7 @@ def variants(real: dict) -> list[tuple[str, str, dict]]:
     return out
 
 
-def run_all(trials: int, jobs: int) -> float:
+def run_all(trials: int, jobs: int, kernels: str = "compiled") -> float:
     t0 = time.perf_counter()
     RUNS.mkdir(parents=True, exist_ok=True)
     real = yaml.safe_load(CONFIG.read_text())
@@ -104,7 +105,7 @@ def run_all(trials: int, jobs: int) -> float:
         path.write_text(yaml.safe_dump(d, sort_keys=False))
         scn = load_scenario(path)
         t1 = time.perf_counter()
-        opts = engine.RunOptions(trials=trials, jobs=jobs, overwrite=True, timeseries="none",
+        opts = engine.RunOptions(trials=trials, jobs=jobs, kernels=kernels, overwrite=True, timeseries="none",
                                  command=["docs/make_realism.py", name])  # fmt: skip
         engine.run(scn, RUNS / name, opts)
         print(f"{name}: {trials} trials in {time.perf_counter() - t1:.1f} s", flush=True)
@@ -308,10 +309,11 @@ Tracker faults and gating (means per trial and step):
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=TRIALS)
-    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--jobs", type=int, default=available_cores(), help="default: the cores available")
+    ap.add_argument("--kernels", choices=["compiled", "numpy"], default="compiled")
     ap.add_argument("--skip-runs", action="store_true")
     a = ap.parse_args(argv)
-    wall = None if a.skip_runs else run_all(a.trials, a.jobs)
+    wall = None if a.skip_runs else run_all(a.trials, a.jobs, a.kernels)
     real = yaml.safe_load(CONFIG.read_text())
     vs = variants(real)
     rows = [summary(n) for n, _, _ in vs]

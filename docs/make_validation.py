@@ -42,6 +42,7 @@ from stereopose_mc.outputs.report import RunData, load_run
 from stereopose_mc.data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_percentiles
 from stereopose_mc.rundir.percentiles import percentile_table
 from stereopose_mc.rundir.tables import ERROR_NAMES
+from stereopose_mc.mc.cores import available_cores
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = tuple("ABCDEF")
@@ -1453,7 +1454,7 @@ def _block_discussion(meds: dict[tuple[str, str], dict[str, float]], dofs: dict[
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--skip-runs", action="store_true", help="reuse runs/validation/ (no runs, no reports)")
-    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--jobs", type=int, default=available_cores(), help="default: the cores available")
     ap.add_argument("--trials", type=int, default=None, help="override the scenarios' trial count (testing only)")
     ap.add_argument("--nees-trials", type=int, default=100, help="trials of the separate block-NEES run")
     ap.add_argument("--cases", default="".join(CASES))

@@ -204,8 +204,16 @@ class Run:
         return export(self.path, format, tables, out, overwrite)
 
 
-def _options(jobs: int, chunk_size: int | None, backend: str, kernels: str | None, scheduler: str | None,
+def default_jobs() -> int:
+    """The default of ``jobs``: the cores available to this process (affinity mask and cgroup quota)."""
+    from ..mc.cores import available_cores
+
+    return available_cores()
+
+
+def _options(jobs: int | None, chunk_size: int | None, backend: str, kernels: str | None, scheduler: str | None,
              say: Callable[[str], None] | None, command: list[str] | None, **kw: Any) -> engine.RunOptions:  # fmt: skip
+    jobs = default_jobs() if jobs is None else jobs
     if scheduler is not None and backend not in ("auto", "dask"):
         raise SpmcError(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
     backend = "dask" if scheduler is not None else backend
@@ -229,7 +237,7 @@ def _start(scn: Scenario, out: Path, opts: engine.RunOptions, progress: Progress
 
 
 def run(scenario: Scenario | str | Path | Mapping[str, Any], *, trials: int | None = None,
-        out: str | Path | None = None, seed: int | None = None, jobs: int = 1, chunk_size: int | None = None,
+        out: str | Path | None = None, seed: int | None = None, jobs: int | None = None, chunk_size: int | None = None,
         backend: str = "auto", kernels: str | None = None, scheduler: str | None = None, timeseries: str = "full",
         overwrite: bool = False, report: bool = False, progress: Progress | None = None,
         say: Callable[[str], None] | None = None, command: list[str] | None = None) -> Run:  # fmt: skip
@@ -237,9 +245,11 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any], *, trials: int | No
 
     ``scenario``: a :class:`Scenario`, a YAML file or a scenario mapping. ``out`` defaults to
     ``runs/<scenario name>``; an existing non-empty directory needs ``overwrite=True``. The
-    options are those of ``spmc run`` (``kernels="compiled"``: the Numba kernels; ``timeseries``:
-    ``none``, ``summary`` or ``full``); ``report=True`` also writes the figures and report.html.
-    ``progress(done, total, diverged_per_filter)`` is called as chunks finish; ``say`` gets notes.
+    options are those of ``spmc run`` (``jobs``: default the cores available; ``kernels``: default
+    ``compiled``, the Numba kernels, ``numpy`` the readable reference; ``timeseries``: ``none``,
+    ``summary`` or ``full``); ``report=True`` also writes the figures and report.html.
+    ``progress(done, total, diverged_per_filter)`` is called about every 0.5 s (trials done, from the
+    chunks' trial-steps) and as chunks finish; ``say`` gets notes.
     Raises :class:`SpmcError` for bad input; results do not depend on ``jobs``, ``chunk_size`` or ``backend``.
     """
     scn = as_scenario(scenario)
@@ -249,7 +259,8 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any], *, trials: int | No
     return _start(scn, out, opts, progress, report)
 
 
-def resume(path: str | Path, *, trials: int | None = None, seed: int | None = None, jobs: int = 1, chunk_size: int | None = None,
+def resume(path: str | Path, *, trials: int | None = None, seed: int | None = None, jobs: int | None = None,
+           chunk_size: int | None = None,
            backend: str = "auto", kernels: str | None = None, scheduler: str | None = None,
            timeseries: str | None = None, report: bool = False, progress: Progress | None = None,
            say: Callable[[str], None] | None = None, command: list[str] | None = None) -> Run:  # fmt: skip

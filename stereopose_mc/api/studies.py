@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +14,7 @@ from ..config.schema import Scenario
 from ..mc import engine
 from ..rundir.store import RunDirError
 from .errors import SpmcError
-from .runs import Run
+from .runs import KERNELS, Run, _options
 from .scenarios import _sweep, as_scenario, edit
 
 if TYPE_CHECKING:  # imported where used: studies.sweep and studies.tuning import pandas (~0.25 s)
@@ -81,7 +80,8 @@ class Sweep:
 
 
 def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zip: bool = False,
-          trials: int | None = None, jobs: int = 1, chunk_size: int = 50, timeseries: str = "summary",
+          trials: int | None = None, jobs: int | None = None, chunk_size: int | None = None, kernels: str | None = None,
+          timeseries: str = "summary",
           report: bool = False, on_point: Callable[[int, int, Point, str], None] | None = None,
           progress_of: Callable[[Point], ContextManager] | None = None,
           command: list[str] | None = None) -> Sweep:  # fmt: skip
@@ -90,7 +90,8 @@ def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zi
     ``scenario``: a scenario YAML file, or a sweep file (``configs/sweeps/*.yaml``) whose ``set``,
     ``zip`` and ``trials`` apply unless given here (a path in ``sets`` overrides the file's).
     ``sets``: ``{"camera.baseline_m": [0.5, 1, 2]}`` or ``["camera.baseline_m=0.5,1,2"]``.
-    Every point uses the scenario's root seed (paired trials). ``on_point(i, n, point, what)``
+    ``jobs``, ``chunk_size``, ``kernels``: as :func:`run`'s (a resumed point keeps its kernels unless
+    given). Every point uses the scenario's root seed (paired trials). ``on_point(i, n, point, what)``
     is told of each point (``what``: run, resume or done); ``progress_of(point)`` gives a
     context manager yielding the point's progress callback.
     """
@@ -108,8 +109,7 @@ def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zi
         sets = [s for s in file_sets if s.split("=", 1)[0] not in given] + sets
         zip = zip or file_zip
         trials = trials if trials is not None else file_trials
-    opts = engine.RunOptions(jobs=jobs, chunk_size=chunk_size, timeseries=timeseries,
-                             command=list(sys.argv) if command is None else list(command))  # fmt: skip
+    opts = _options(jobs, chunk_size, "auto", kernels, None, None, command, timeseries=timeseries)
     try:
         res = sw.run_sweep(scenario, sets, Path(out), zip, trials, opts, on_point, progress_of)
     except ScenarioError as exc:
@@ -144,14 +144,21 @@ class Tuning:
         return yaml.safe_dump({"filters": [self.entry]}, sort_keys=False)
 
 
+def _kernels(kernels: str | None) -> str:
+    if kernels not in (None, *KERNELS):
+        raise SpmcError(f"--kernels must be numpy or compiled (got {kernels!r})")
+    return kernels or engine.DEFAULT_KERNELS
+
+
 def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, trials: int = 30,
-         max_evaluations: int = 40, out: str | Path | None = None,
+         max_evaluations: int = 40, out: str | Path | None = None, kernels: str | None = None,
          progress: Callable[[int, tuning.Evaluation, str], None] | None = None) -> Tuning:  # fmt: skip
     """Tune the Q block scales of the filter labelled ``filter`` so its NEES and NIS are consistent.
 
     Every evaluation runs the same ``trials`` trials (at least 2), at most ``max_evaluations``
     of them (docs/filters.md, Tuning). ``out``: also write the tuned entry there as YAML.
-    ``progress(i, evaluation, what)`` is called after each evaluation.
+    ``progress(i, evaluation, what)`` is called after each evaluation. ``kernels``: as :func:`run`'s
+    (default ``compiled``).
     """
     from ..studies import tuning
 
@@ -164,7 +171,7 @@ def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, tr
     if out is not None and (out.is_dir() or not out.parent.exists()):
         raise SpmcError(f"{out}: --out must be a file in an existing directory")
     try:
-        res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress)
+        res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress, kernels=_kernels(kernels))
     except tuning.TuneError as exc:
         where = scn.name if isinstance(scenario, (Scenario, Mapping)) else str(scenario)
         raise SpmcError(f"{where}: {exc}") from None

@@ -15,6 +15,12 @@ import typer
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help="stereopose_mc: Monte Carlo runs of stereo-vision relative pose, motion and inertia estimation.")
 
 
+JOBS_HELP = "parallel workers (default: the cores available to this process)"
+CHUNK_HELP = "trials stepped together per chunk (default: the trials split over the jobs, 32-250; numpy: 50)"
+KERNELS_HELP = ("compiled (default: Numba) | numpy (the readable reference; the same results to round-off: "
+                "docs/performance.md)")
+
+
 def fail(lines: list[str] | str, code: int = 2) -> None:
     for line in [lines] if isinstance(lines, str) else lines:
         typer.echo(f"error: {line}", err=True)

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from .app import app, fail, load_or_exit
+from .app import CHUNK_HELP, JOBS_HELP, KERNELS_HELP, app, fail, load_or_exit
 
 
 @app.command()
@@ -17,13 +17,11 @@ def run(
     trials: Optional[int] = typer.Option(None, "--trials", min=1, help="number of trials (default: the scenario's)"),
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
-    jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
-    chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help="trials stepped together per chunk "
-                                             "(default 50; with --kernels compiled: trials / jobs, at most 250)"),
-    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with --kernels compiled, "
-                                          "else loky processes) | loky | threading | dask"),
-    kernels: Optional[str] = typer.Option(None, "--kernels", help="numpy (default; the reference) | compiled (Numba, "
-                                          "threads; same results to round-off: docs/performance.md); on --resume, the run's"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1, help=JOBS_HELP),
+    chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help=CHUNK_HELP),
+    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with the compiled kernels, "
+                                          "loky processes with numpy) | loky | threading | dask"),
+    kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP + "; on --resume, the run's"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
                                             "(default with dask: a LocalCluster); see docs/distributed.md"),
     timeseries: Optional[str] = typer.Option(None, "--timeseries", help="none | summary (first 100 trials) | full "

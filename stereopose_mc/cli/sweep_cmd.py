@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from .app import app, fail
+from .app import CHUNK_HELP, JOBS_HELP, KERNELS_HELP, app, fail
 
 
 @app.command()
@@ -18,8 +18,9 @@ def sweep(
     out: Path = typer.Option(..., "--out", help="sweep directory (one run directory per point below it)"),
     zipped: bool = typer.Option(False, "--zip", help="pair the --set lists (same length) instead of a grid"),
     trials: Optional[int] = typer.Option(None, "--trials", min=1, help="trials per point (default: the scenario's)"),
-    jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="parallel workers"),
-    chunk_size: int = typer.Option(50, "--chunk-size", min=1, help="trials stepped together per chunk"),
+    jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1, help=JOBS_HELP),
+    chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help=CHUNK_HELP),
+    kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP + "; a resumed point keeps its own"),
     timeseries: str = typer.Option("summary", "--timeseries", help="none | summary | full (per point)"),
     report: bool = typer.Option(True, "--report/--no-report", help="write the sweep report at the end"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
@@ -39,7 +40,7 @@ def sweep(
                                                                 "resume": "resuming"}[what])  # fmt: skip
 
     try:
-        res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size,
+        res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size, kernels=kernels,
                         timeseries=timeseries, on_point=on_point, progress_of=lambda p: progress_reporter(p.name, quiet),
                         command=list(sys.argv))  # fmt: skip
         if report:

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from .app import app, fail
+from .app import KERNELS_HELP, app, fail
 
 
 @app.command()
@@ -17,6 +17,7 @@ def tune(
     trials: int = typer.Option(30, "--trials", help="trials per evaluation (the same ones every time)"),
     out: Optional[Path] = typer.Option(None, "--out", help="write the tuned filter entry (YAML) here"),
     max_evaluations: int = typer.Option(40, "--max-evaluations", help="budget of Monte Carlo evaluations"),
+    kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
 ) -> None:
     """Tune the Q block scales of one filter so its NEES and NIS are consistent (docs/filters.md, Tuning)."""
@@ -28,7 +29,7 @@ def tune(
                        f"{ev.nees.get('nees_gauge', float('nan')):.3g}, NIS/dof {ev.nis:.3g}, lost {ev.lost}", err=True)  # fmt: skip
 
     try:
-        res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,
+        res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out, kernels=kernels,
                        progress=progress)  # fmt: skip
     except api.SpmcError as exc:
         fail(exc.lines)

@@ -80,8 +80,9 @@ def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
 
 
 def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
-              kernels: str = "numpy") -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
-    """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order)."""
+              kernels: str = "numpy", tick=None) -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
+    """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order;
+    ``tick``: ``trial.run_filter``'s progress counter)."""
     t0 = time.perf_counter()
     trials = np.asarray(trials, dtype=np.int64)
     B, K1 = trials.size, setup.steps + 1
@@ -127,7 +128,7 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
             for fs in filters:
                 t1 = time.perf_counter()
                 r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m, P0_m,
-                               kernels)  # fmt: skip
+                               kernels, tick)  # fmt: skip
                 _put(runs[fs.label], r, rows[m])
                 runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
                                             else np.zeros(B))  # fmt: skip

@@ -30,7 +30,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable, Mapping
 
 import numpy as np
 import yaml
@@ -57,6 +57,7 @@ if TYPE_CHECKING:  # pandas is not imported by a run (~0.25 s): only by RunResul
     import pyarrow as pa
 
 TIMESERIES_MODES = ("none", "summary", "full")
+DEFAULT_KERNELS = "compiled"  # the Numba kernels; "numpy" is the readable reference (docs/performance.md)
 SUMMARY_TRIALS = 100  # trials kept in timeseries.parquet with --timeseries summary
 
 
@@ -120,8 +121,9 @@ class ChunkOutput:
 _PREPARE_LOCK = threading.Lock()  # threads of one process share prepare()'s cache: compute it once
 
 
-def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kernels: str = "numpy") -> ChunkOutput:
-    """Run one chunk of trials (any process): pure function of its arguments.
+def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kernels: str = DEFAULT_KERNELS,
+                  tick: Callable[[int], None] | None = None) -> ChunkOutput:  # fmt: skip
+    """Run one chunk of trials (any process): pure function of its arguments (``tick``: progress only).
 
     BLAS runs single-threaded here: a multithreaded BLAS splits a product or a solve
     differently with the thread count, which changes the last bits of the results.
@@ -131,9 +133,10 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
         with _PREPARE_LOCK:
             scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
         if dispersed.has_dispersions(scn):
-            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels)
+            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels, tick)
         else:
-            res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels), None
+            res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels,
+                                  tick), None  # fmt: skip
     tc = rows.trials_columns(res, truth.t, setup.window_start, scn.seed)
     if disp is not None:
         tc = dispersed.with_columns(tc, disp)
@@ -171,9 +174,9 @@ class RunOptions:
     trials: int | None = None
     seed: int | None = None
     jobs: int = 1
-    chunk_size: int | None = 50  # None: auto_chunk_size
-    backend: str = "loky"  # "auto": threads for --kernels compiled (nogil kernels), else loky
-    kernels: str | None = "numpy"  # numpy | compiled (mc.trial.step_functions); None: numpy, or a resumed run's
+    chunk_size: int | None = None  # None: auto_chunk_size
+    backend: str = "auto"  # threads for --kernels compiled (nogil kernels), else loky
+    kernels: str | None = "compiled"  # compiled | numpy (mc.trial.step_functions); None: compiled, or a resumed run's
     scheduler: str | None = None
     timeseries: str = "full"
     overwrite: bool = False
@@ -259,11 +262,54 @@ def _die_with(driver_pid: int) -> None:
 
 
 def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: np.ndarray, timeseries: str,
-                            kernels: str = "numpy"):  # fmt: skip
-    """:func:`compute_chunk` in a local worker process that dies with the driver ``driver_pid``."""
+                            kernels: str = DEFAULT_KERNELS, steps: Mapping | None = None):  # fmt: skip
+    """:func:`compute_chunk` in a local worker process that dies with the driver ``driver_pid``
+    (``steps``: the driver's :class:`StepCounter` mapping, a Manager proxy)."""
     if driver_pid is not None:
         _die_with(driver_pid)
-    return compute_chunk(scenario_json, trials, timeseries, kernels)
+    tick = None if steps is None else StepCounter.tick_of(steps, int(trials[0]), PROXY_EVERY_S)
+    try:
+        return compute_chunk(scenario_json, trials, timeseries, kernels, tick)
+    finally:
+        if tick is not None:
+            tick.flush()
+
+
+PROXY_EVERY_S = 0.5  # a worker process sends its chunk's trial-step count to the driver at most this often
+
+
+class StepCounter:
+    """Trial-steps done so far by the chunks of a run, for progress between chunk ends.
+
+    Each chunk owns one entry (its first trial -> its trial-steps so far), so the chunks never
+    write the same entry and a write needs no lock: a plain dict for threads, a Manager's dict
+    proxy for processes (each write a round trip to the Manager: sent at most every
+    ``PROXY_EVERY_S``). The driver polls :meth:`total`.
+    """
+
+    def __init__(self, steps: Mapping | None = None):
+        self.steps = {} if steps is None else steps
+
+    def total(self) -> int:
+        return int(sum(self.steps.values()))
+
+    class _Tick:
+        def __init__(self, steps: Mapping, key: int, every_s: float):
+            self.steps, self.key, self.every_s, self.n, self.sent_at = steps, key, every_s, 0, time.perf_counter()
+
+        def __call__(self, n: int) -> None:
+            self.n += n
+            if self.every_s <= 0 or time.perf_counter() - self.sent_at >= self.every_s:
+                self.flush()
+
+        def flush(self) -> None:
+            self.steps[self.key] = self.n
+            self.sent_at = time.perf_counter()
+
+    @classmethod
+    def tick_of(cls, steps: Mapping, key: int, every_s: float = 0.0) -> StepCounter._Tick:
+        """The ``tick(n)`` of the chunk whose first trial is ``key``."""
+        return cls._Tick(steps, key, every_s)
 
 
 AUTO_CHUNK_MAX = 250  # compiled kernels: trials per chunk at most (memory ~ chunk x steps x n^2)
@@ -328,7 +374,8 @@ def connect_dask(address: str | None, jobs: int, info: dict | None = None):
 DASK_CONNECT_TIMEOUT_S = 10
 
 
-def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions) -> Iterable[ChunkOutput]:
+def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
+              counter: StepCounter | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
     """Chunk outputs as they finish, from ``opts.jobs`` threads of this process (the nogil compiled kernels).
 
     The standard library's thread pool (joblib's threading backend costs ~0.06 s of imports, paid
@@ -341,30 +388,48 @@ def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions) ->
     with threadpool_limits(limits=1):
         pool = ThreadPoolExecutor(max_workers=opts.jobs, thread_name_prefix="spmc-chunk")
         try:
-            futures = [pool.submit(compute_chunk, scenario_json, c, opts.timeseries, opts.kernels) for c in chunks]
+            futures = [pool.submit(compute_chunk, scenario_json, c, opts.timeseries, opts.kernels,
+                                   None if counter is None else StepCounter.tick_of(counter.steps, int(c[0])))
+                       for c in chunks]  # fmt: skip
             for f in as_completed(futures):
                 yield f.result()
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
-             info: dict | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
-    """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest)."""
+def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, info: dict | None = None,
+             counter: Callable[[Mapping | None], StepCounter] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
+    """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest).
+
+    ``counter(steps)``: called once with the mapping the chunks will count their trial-steps in
+    (None: a plain dict, for this process's threads; a Manager's dict for loky processes); Dask's
+    remote chunks are counted when they end.
+    """
     where = local_backend(opts, len(chunks))
     if info is not None:
         info["ran_as"] = where
-    if where == "inline":
+    if where in ("inline", "threading"):
+        sc = None if counter is None else counter(None)
+        if where == "threading":
+            yield from _threaded(scenario_json, chunks, opts, sc)
+            return
         for c in chunks:
-            yield compute_chunk(scenario_json, c, opts.timeseries, opts.kernels)
-        return
-    if where == "threading":
-        yield from _threaded(scenario_json, chunks, opts)
+            yield compute_chunk(scenario_json, c, opts.timeseries, opts.kernels,
+                                None if sc is None else StepCounter.tick_of(sc.steps, int(c[0])))  # fmt: skip
         return
     from joblib import Parallel, delayed, parallel_config
 
     driver = None if opts.scheduler else os.getpid()  # remote workers outlive us by design
-    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries, opts.kernels) for c in chunks)
+    manager = None
+    if where != "dask" and counter is not None:
+        from multiprocessing import Manager
+
+        manager = Manager()  # a server process; no files
+        steps = counter(manager.dict()).steps
+    else:
+        steps = None
+    calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries, opts.kernels, steps)
+             for c in chunks)  # fmt: skip
     if where == "dask":
         from dask.distributed import KilledWorker
 
@@ -380,8 +445,12 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
             if cluster is not None:
                 cluster.close()
         return
-    with parallel_config(backend=where, n_jobs=opts.jobs):
-        yield from Parallel(return_as="generator_unordered")(calls)
+    try:
+        with parallel_config(backend=where, n_jobs=opts.jobs):
+            yield from Parallel(return_as="generator_unordered")(calls)
+    finally:
+        if manager is not None:
+            manager.shutdown()
 
 
 def _merged(files: list[Path], order: dict[str, int]) -> tables.Columns:
@@ -465,7 +534,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
 
 def _resume_kernels(opts: RunOptions, manifest: dict) -> RunOptions:
     """A resumed run keeps the kernels it was started with unless ``--kernels`` says otherwise (then a note)."""
-    rec = (manifest.get("backend") or {}).get("kernels") or "numpy"
+    rec = _recorded_kernels(manifest)
     if opts.kernels is None:
         return dataclasses.replace(opts, kernels=rec)
     if opts.kernels != rec:
@@ -513,7 +582,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
     if opts.kernels not in (None, "numpy", "compiled"):
         raise RunError(f"--kernels must be numpy or compiled (got {opts.kernels!r})")
     if opts.kernels is None and not opts.resume:
-        opts = dataclasses.replace(opts, kernels="numpy")
+        opts = dataclasses.replace(opts, kernels=DEFAULT_KERNELS)
     too_big = memory_problem(opts.trials or scn.trials, len(scn.filters))
     if too_big:
         raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
@@ -559,23 +628,22 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size))
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
-    n_done, n_div = int(done.size), {f: v.diverged().get(f, 0) for f in spec.filters}
-    if progress:
-        progress(n_done, scn.trials, dict(n_div))
+    n_div = {f: v.diverged().get(f, 0) for f in spec.filters}
+    ticker = _Ticker(progress, int(done.size), scn.trials, (spec.steps - 1) * len(spec.filters), n_div)
+    ticker.report()
     manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
                            "kernels": opts.kernels}  # fmt: skip
-    for co in _iterate(scenario_json, chunks, opts, manifest["backend"]):
-        _write_chunk(chunk_dir, co, meta, spec)
-        n_done += co.trials.size
-        for f, d in co.diverged_by.items():
-            n_div[f] = n_div.get(f, 0) + d
-        manifest.setdefault("chunks", []).append(
-            {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
-             "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
-        )
-        store.write_json(out / "manifest.json", manifest)
-        if progress:
-            progress(n_done, scn.trials, dict(n_div))
+    if opts.kernels == "compiled" and chunks:
+        _say(opts, compile_note())
+    with ticker:
+        for co in _iterate(scenario_json, chunks, opts, manifest["backend"], ticker.counter if progress else None):
+            _write_chunk(chunk_dir, co, meta, spec)
+            manifest.setdefault("chunks", []).append(
+                {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
+                 "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
+            )
+            store.write_json(out / "manifest.json", manifest)
+            ticker.chunk_done(co.trials.size, co.diverged_by)
     v = integrity.verify_chunks(chunk_dir, spec)
     try:
         integrity.check_complete(v, spec)
@@ -586,6 +654,70 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
     store.write_json(out / "manifest.json", manifest)
     return RunResult(out, trials, pt, time.perf_counter() - t_start, len(chunks))
+
+
+def compile_note() -> list[str]:
+    """``["compiling kernels, first run only ..."]`` when Numba's cache lacks the kernels, else ``[]``."""
+    from . import warm
+
+    return [] if warm.kernels_cached() else [warm.COMPILING]
+
+
+class _Ticker:
+    """The run's progress: finished chunks, and between chunk ends the trial-steps of the chunks in flight.
+
+    ``progress(done, total, diverged)`` gets whole trials: those of the finished chunks, or (if
+    more) the trials the counted trial-steps amount to (``per_trial`` trial-steps each: steps x
+    filters). A thread polls the counter every ``every_s``; calls never overlap.
+    """
+
+    def __init__(self, progress: Progress | None, start: int, total: int, per_trial: int, diverged: dict[str, int],
+                 every_s: float = 0.5):  # fmt: skip
+        self.progress, self.start, self.done, self.total = progress, start, start, total
+        self.per_trial, self.diverged, self.every_s = max(1, per_trial), diverged, every_s
+        self.steps: StepCounter | None = None
+        self._lock, self._stop = threading.Lock(), threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def counter(self, steps: Mapping | None) -> StepCounter:
+        self.steps = StepCounter(steps)
+        return self.steps
+
+    def _trials(self) -> int:
+        if self.steps is None:
+            return self.done
+        try:
+            counted = self.steps.total()
+        except (OSError, EOFError):  # the Manager is gone at the end of a run: the chunks' own count stands
+            return self.done
+        return max(self.done, min(self.total, self.start + counted // self.per_trial))
+
+    def report(self) -> None:
+        if self.progress is not None:
+            with self._lock:
+                self.progress(self._trials(), self.total, dict(self.diverged))
+
+    def chunk_done(self, n: int, diverged_by: dict[str, int]) -> None:
+        with self._lock:
+            self.done += n
+            for f, d in diverged_by.items():
+                self.diverged[f] = self.diverged.get(f, 0) + d
+        self.report()
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self.every_s):
+            self.report()
+
+    def __enter__(self) -> _Ticker:
+        if self.progress is not None:
+            self._thread = threading.Thread(target=self._poll, name="spmc-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 def _read_manifest(out: Path) -> dict:
@@ -604,6 +736,15 @@ def _read_manifest(out: Path) -> dict:
 def recorded_timeseries(out: Path) -> str:
     """The ``--timeseries`` mode a run was started with."""
     return str(_read_manifest(out).get("timeseries", "full"))
+
+
+def recorded_kernels(out: Path) -> str:
+    """The kernels a run was started with (runs that predate the record: numpy)."""
+    return _recorded_kernels(_read_manifest(out))
+
+
+def _recorded_kernels(manifest: dict) -> str:
+    return str((manifest.get("backend") or {}).get("kernels") or "numpy")
 
 
 def load_run_scenario(out: Path) -> Scenario:

@@ -33,7 +33,11 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         raise RerunError(f"--out {out} is a directory: give a file name, e.g. {Path(out) / f't{trial}.parquet'}")
     if trial >= scn.trials:
         raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
-    co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full")
+    try:  # the run's own kernels: the two paths agree to round-off, not bit for bit
+        kernels = engine.recorded_kernels(run_dir)
+    except engine.RunError as exc:
+        raise RerunError(str(exc)) from None
+    co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full", kernels)
     recomputed = co.trials_table.to_pandas()
     lines = [f"{scn.name}: trial {trial} (root seed {scn.seed}, SeedSequence spawn key ({trial},))"]
     identical = True

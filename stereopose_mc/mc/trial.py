@@ -27,6 +27,7 @@ import functools
 import time
 import warnings
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -193,13 +194,15 @@ def run_filter(
     kept: Array | None = None,
     P0: Array | None = None,
     kernels: str = "numpy",
+    tick: Callable[[int], None] | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
     ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
     holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
-    ``compiled`` (``filters.compiled``, the same step on the Numba kernels).
+    ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n)``: told of
+    every ``n`` trial-steps done (``B`` per step; a chunk's lost trials count as done), for progress.
     """
     stepper = step_functions(kernels)
     B, n = x0_hat.shape
@@ -247,7 +250,11 @@ def run_filter(
     # posterior when it is lost (frozen there) and the others' at the end.
     x_act, P_act = x, P
     for k in range(1, K + 1):
+        if tick is not None:
+            tick(B)
         if active.size == 0:
+            if tick is not None:
+                tick(B * (K - k))
             break
         if truth.filter_orbits is not None:  # perturbed truth: Keplerian model from the leader's osculating orbit
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
@@ -585,8 +592,9 @@ class ChunkResult:
 
 
 def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.Measurements,
-              filters: list[FilterSetup], bounds: Bounds, kernels: str = "numpy") -> ChunkResult:
-    """Draw the chunk's trials and run every filter on the same draws."""
+              filters: list[FilterSetup], bounds: Bounds, kernels: str = "numpy",
+              tick: Callable[[int], None] | None = None) -> ChunkResult:  # fmt: skip
+    """Draw the chunk's trials and run every filter on the same draws (``tick``: ``run_filter``'s)."""
     t0 = time.perf_counter()
     draws = meas.draw_trials(seed, trials, setup.x0.size, setup.steps, setup.n_points)
     noisy = meas.noisy(setup, exact, draws)
@@ -601,7 +609,7 @@ def run_chunk(seed: int, trials: Array, setup: Setup, truth: Truth, exact: meas.
     for fs in filters:
         t1 = time.perf_counter()
         r = run_filter(x0_hat, setup, truth, y, noisy.alpha, exact.visible, fs, bounds,
-                       None if faults is None else faults.kept, P0, kernels)  # fmt: skip
+                       None if faults is None else faults.kept, P0, kernels, tick)  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(np.asarray(trials), runs, time.perf_counter() - t0, faults)

@@ -222,7 +222,7 @@ def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = Fa
                 on_point(i, len(points), p, "done")
             continue
         resume = (d / "manifest.json").is_file()
-        o = engine.RunOptions(jobs=opts.jobs, chunk_size=opts.chunk_size, backend=opts.backend,
+        o = engine.RunOptions(jobs=opts.jobs, chunk_size=opts.chunk_size, backend=opts.backend, kernels=opts.kernels,
                               scheduler=opts.scheduler, timeseries=opts.timeseries, resume=resume,
                               overwrite=not resume, command=opts.command)  # fmt: skip
         if on_point:

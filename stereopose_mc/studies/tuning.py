@@ -65,11 +65,12 @@ class TuneResult:
     history: list[Evaluation] = field(default_factory=list)
 
 
-def _evaluate(prep: engine.Prepared, index: int, pn: dict[str, float], trials: np.ndarray) -> Evaluation:
+def _evaluate(prep: engine.Prepared, index: int, pn: dict[str, float], trials: np.ndarray,
+              kernels: str = engine.DEFAULT_KERNELS) -> Evaluation:  # fmt: skip
     """Medians over the converged trials of the window-averaged NEES/dof (per key), NIS/dof and errors."""
     scn, setup = prep.scenario, prep.setup
     fs: FilterSetup = dataclasses.replace(prep.filters[index], Q_diag=block_diag(ProcessNoiseConfig(**pn), setup.n_points))
-    r = run_chunk(scn.seed, trials, setup, prep.truth, prep.exact, [fs], prep.bounds).runs[0]
+    r = run_chunk(scn.seed, trials, setup, prep.truth, prep.exact, [fs], prep.bounds, kernels).runs[0]
     w = prep.truth.t >= setup.window_start - 1e-9
     ok = r.diverged_step < 0
     series = {"nees": r.nees, **r.nees_parts}
@@ -100,9 +101,9 @@ def _cost(ev: Evaluation, ref: Evaluation, trials: int) -> float:
 
 
 def tune(scn: Scenario, label: str, trials: int = 30, max_evaluations: int = 40, min_step: float = 0.25,
-         initial_step: float = 2.0,
-         progress: Callable[[int, Evaluation, str], None] | None = None) -> TuneResult:  # fmt: skip
-    """Coordinate search of the Q block scales of filter ``label`` (see the module docstring)."""
+         initial_step: float = 2.0, progress: Callable[[int, Evaluation, str], None] | None = None,
+         kernels: str = engine.DEFAULT_KERNELS) -> TuneResult:  # fmt: skip
+    """Coordinate search of the Q block scales of filter ``label`` (see the module docstring) on ``kernels``."""
     labels = [f.label for f in scn.filters]
     if label not in labels:
         raise TuneError(f"no filter labelled {label!r} in scenario {scn.name!r} (its filters: {', '.join(labels)})")
@@ -117,7 +118,7 @@ def tune(scn: Scenario, label: str, trials: int = 30, max_evaluations: int = 40,
     def run(pn):
         nonlocal n_eval
         n_eval += 1
-        return _evaluate(prep, index, pn, ids)
+        return _evaluate(prep, index, pn, ids, kernels)
 
     before = run(pn0)
     before.cost = _cost(before, before, trials)

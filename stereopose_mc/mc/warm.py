@@ -1,0 +1,108 @@
+"""Numba's cache of the compiled kernels: whether it is warm, and warming it (``python -m stereopose_mc.mc.warm``).
+
+The kernels (``core/kernels``, ``cache=True``) compile on their first call in a process that
+finds no cache entry for them, and store the machine code in ``core/kernels/__pycache__``
+(an index file ``<module>.<function>-<line>.py311.nbi`` per kernel called from Python, holding
+the cache stamp: ``core/kernels/_cache.py``). ``make venv`` runs :func:`main`, a few steps of
+short campaigns that call every kernel signature a run uses, so the first ``spmc run`` loads
+instead of compiling (about a minute on 2 cores).
+
+:func:`kernels_cached` reads those index files: the cache is warm when at least one exists and
+every existing one carries the current stamp (an edit of any kernel module, or of a ``core``
+module they import, changes it: then everything recompiles). Kernels only ever called from
+other kernels are compiled into their callers and have no index of their own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pickle
+import pkgutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+COMPILING = "compiling kernels, first run only (about a minute; `make venv` does it at install)"
+ROOT = Path(__file__).resolve().parents[2]
+# scenarios whose few steps call every signature: the full-state and aligned charts, both filters,
+# small and large states (past 64 columns), masked rows, dispersions and a mesh target
+WARM_SCENARIOS = ("caseB.yaml", "mission-realistic.yaml", "mission-mesh-dispersed.yaml")
+WARM_STEPS = 6
+
+
+def dispatchers() -> list:
+    """Every ``@njit(cache=True)`` function of ``core.kernels`` (imports the modules; compiles nothing)."""
+    from numba.core.registry import CPUDispatcher
+
+    from ..core import kernels
+
+    out = []
+    for info in pkgutil.iter_modules(kernels.__path__):
+        mod = importlib.import_module(f"{kernels.__name__}.{info.name}")
+        out += [v for v in vars(mod).values()
+                if isinstance(v, CPUDispatcher) and v.__module__ == mod.__name__ and getattr(v, "_cache", None)]  # fmt: skip
+    return out
+
+
+def _index_state(d) -> bool | None:
+    """True: an index with the current stamp; False: a stale or unreadable one; None: no index."""
+    cf = d._cache._cache_file
+    try:
+        with open(cf._index_path, "rb") as f:
+            version = pickle.load(f)
+            data = f.read()
+    except FileNotFoundError:
+        return None
+    except (OSError, pickle.UnpicklingError, EOFError):
+        return False
+    if version != cf._version:
+        return False
+    try:
+        stamp, overloads = pickle.loads(data)
+    except Exception:  # noqa: BLE001 - an index another Numba wrote: treat as stale, as Numba does
+        return False
+    return stamp == cf._source_stamp and bool(overloads)
+
+
+def kernels_cached() -> bool:
+    """True when Numba's cache holds the kernels for the current source (see the module's docstring)."""
+    states = [_index_state(d) for d in dispatchers()]
+    seen = [s for s in states if s is not None]
+    return bool(seen) and all(seen)
+
+
+def warm(config_dir: Path = ROOT / "configs", steps: int = WARM_STEPS, echo=print) -> float:
+    """Run ``steps`` steps of 2 trials of each warm-up scenario on the compiled kernels; return the seconds."""
+    from .. import api
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="spmc-warm-") as tmp:
+        for name in WARM_SCENARIOS:
+            path = Path(config_dir) / name
+            if not path.is_file():
+                continue
+            scn = api.load(path)
+            scn = api.edit(scn, {"time.duration_s": steps * scn.time.dt_s, "time.error_window_start_s": 0.0})
+            t1 = time.perf_counter()
+            api.run(scn, trials=2, out=Path(tmp) / name, jobs=1, kernels="compiled", timeseries="none",
+                    command=["python", "-m", "stereopose_mc.mc.warm"])  # fmt: skip
+            echo(f"warm: {name} {time.perf_counter() - t1:.1f} s")
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m stereopose_mc.mc.warm", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true", help="only say whether the cache is warm (exit 1 if not)")
+    a = ap.parse_args(argv)
+    if a.check:
+        ok = kernels_cached()
+        print("kernels cached" if ok else "kernels not cached")
+        return 0 if ok else 1
+    print(f"warm: {warm():.1f} s (Numba's cache of the kernels, stereopose_mc/core/kernels/__pycache__)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
