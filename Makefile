@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,dask,bench]'
 	$(BIN)/python -m compileall -q stereopose_mc  # bytecode an editable install leaves out (PYTHONDONTWRITEBYTECODE: never written)
+	$(BIN)/python -m stereopose_mc.mc.warm  # Numba's cache of the kernels: the first run loads, not compiles
 	touch $(STAMP)
 
 venv: $(STAMP)

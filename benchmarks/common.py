@@ -18,7 +18,8 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 CASE_B = ROOT / "configs" / "caseB.yaml"
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "steps")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "realistic", "steps")
+DEFAULT_SECTIONS = ("e2e", "realistic", "steps")  # what `make bench` runs: what users run, and the issue-36 targets
 COLUMNS = ("section", "filter", "measure", "value", "unit", "target", "status", "note")
 
 
@@ -72,6 +73,7 @@ class BenchConfig:
     cheap_s: float = 2.0
     # campaign (spmc run in a subprocess)
     campaign_trials: int = 1000
+    realistic_trials: int = 1000  # `realistic`: configs/mission-realistic.yaml, configs/mission-mesh-dispersed.yaml
     campaign_jobs: tuple[int, ...] = (1, 2)
     target_trials: int = 1000  # the size the campaign target is stated for
     # amortized cost per trial vs chunk size: {B: total trials}
@@ -86,7 +88,7 @@ class BenchConfig:
     growth_rounds: int = 7  # `steps`: interleaved rounds over N for the update growth (issue 14)
     scaling_steps: int = 5
     sphere_radius_m: float = 1.5
-    feature_points: tuple[int, ...] = (5, 10, 20, 40)  # `steps` section: update cost vs N (issue 14)
+    feature_points: tuple[int, ...] = (5, 12, 24, 48)  # `steps` section: update cost per trial-step vs N
     cold_cache: bool = True  # `e2e`: empty Numba's cache before the cold compiled run
     memory_kernels: str = "compiled"  # `memory`: spmc run --kernels (threads with compiled)
     # peak memory (spmc run in a subprocess)
@@ -111,8 +113,8 @@ class BenchConfig:
     @classmethod
     def quick(cls, **kw: Any) -> "BenchConfig":
         base = dict(
-            mode="quick", campaign_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
-            feature_points=(5, 10, 20),
+            mode="quick", campaign_trials=100, realistic_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
+            feature_points=(5, 12, 24),
             scaling_batch=20, scaling_steps=2, growth_rounds=3, memory_trials=1000, baseline_trials=20,
             baseline_batch=20, baseline_rounds=1,
         )  # fmt: skip

@@ -1,9 +1,9 @@
 """``make bench``: the benchmark suite of stereopose_mc (see docs/performance.md).
 
-    .venv/bin/python benchmarks/run.py              # full (what `make bench` runs; ~20-30 min on 2 cores)
+    .venv/bin/python benchmarks/run.py              # what `make bench` runs: e2e, realistic, steps (full sizes)
     .venv/bin/python benchmarks/run.py --quick      # reduced sizes (100-trial campaigns, 1,000-trial memory run)
     .venv/bin/python benchmarks/run.py --only latency --only scaling
-    .venv/bin/python benchmarks/run.py --only e2e --only steps   # numpy vs compiled kernels (issue 14)
+    .venv/bin/python benchmarks/run.py --all        # every section
 
 Prints the machine, then one table (section, filter, measure, value, unit, target,
 status, note); writes it to ``runs/bench/results-<mode>[-<sections>].csv`` and ``.json``
@@ -20,14 +20,17 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "steps")
+SECTIONS = ("campaign", "chunk", "latency", "scaling", "memory", "baseline", "dispersed", "e2e", "realistic", "steps")
+DEFAULT_SECTIONS = ("e2e", "realistic", "steps")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="benchmarks/run.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="reduced sizes: 100-trial campaigns, 1,000-trial memory run")
     p.add_argument("--only", action="append", choices=SECTIONS, metavar="NAME",
-                   help=f"run only this section (repeatable): {', '.join(SECTIONS)}")  # fmt: skip
+                   help=f"run only this section (repeatable): {', '.join(SECTIONS)}; default "
+                        f"{', '.join(DEFAULT_SECTIONS)}")  # fmt: skip
+    p.add_argument("--all", action="store_true", help="every section")
     p.add_argument("--scenario", type=Path, default=ROOT / "configs" / "caseB.yaml", help="scenario (default case B)")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "bench", help="output directory (default runs/bench)")
     p.add_argument("--blas-threads", type=int, default=None, metavar="N",
@@ -50,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     kw = dict(scenario=args.scenario.resolve(), out=args.out.resolve(), keep_runs=args.keep,
               blas_threads=args.blas_threads)  # fmt: skip
     cfg = BenchConfig.quick(**kw) if args.quick else BenchConfig.full(**kw)
-    names = [s for s in SECTIONS if not args.only or s in args.only]
+    names = [s for s in SECTIONS if (s in args.only if args.only else (args.all or s in DEFAULT_SECTIONS))]
     info = machine_info()
     cfg.out.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix="tmp-", dir=cfg.out))

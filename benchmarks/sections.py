@@ -40,19 +40,16 @@ from .common import (
     write_yaml,
 )
 
-# Targets (docs/performance.md)
-TARGET_CAMPAIGN_S = 30.0  # case B IEKF, 1,000 trials, --jobs 2, wall
-TARGET_BASELINE_RATIO = 10.0  # our throughput / FilterPy's
-TARGET_STEP_MS = 1.0  # single-trial step median, N = 5
+# Targets (docs/performance.md): the sections here are informative but for the memory; the judged
+# targets are the default command's (kernels_bench: e2e, realistic, steps)
 TARGET_MEMORY_MIB = 1024.0  # 10,000 trials, peak
-TARGET_EXPONENT = 2.0  # time per step ~ N^p
 
 
 # ----------------------------------------------------------------------------- helpers
 
 
 def spmc_run_args(scenario: Path, out: Path, trials: int, jobs: int, timeseries: str,
-                  kernels: str = "numpy") -> list[str]:  # fmt: skip
+                  kernels: str = "compiled") -> list[str]:  # fmt: skip
     return spmc_command() + [
         "run", str(scenario), "--trials", str(trials), "--jobs", str(jobs), "--out", str(out), "--overwrite",
         "--quiet", "--no-report", "--timeseries", timeseries, "--kernels", kernels,
@@ -93,12 +90,8 @@ def campaign(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             rates = {"trials_per_s": T / wall, "trial_steps_per_s": tsteps / wall}
             ctx.setdefault("campaign", {})[(kind, jobs)] = rates
             target, status, note = "", "", ""
-            if kind == "iekf" and jobs == 2:
-                proj = wall * cfg.target_trials / T
-                target = f"<= {TARGET_CAMPAIGN_S:g} s ({cfg.target_trials:,} trials)"
-                status = judge(proj, TARGET_CAMPAIGN_S, "max", reduced)
-                if reduced:
-                    note = f"*projected {proj:.1f} s for {cfg.target_trials:,} trials (linear, start-up included); "
+            if reduced:
+                note = f"*projected {wall * cfg.target_trials / T:.1f} s for {cfg.target_trials:,} trials (linear); "
             note += (f"end to end (process start, imports, truth, Parquet); engine {eng:.1f} s; "
                      f"{ndiv}/{ntr} diverged")  # fmt: skip
             rows.append(Row("campaign", kind, f"wall, {T:,} trials, --jobs {jobs}", wall, "s", target, status, note))
@@ -187,10 +180,7 @@ def _latency(cfg: BenchConfig) -> list[Row]:
         it = float(np.mean(iters[k0 - 1 : k1]))
         note = (f"trial {trial}, steps {k0}-{k1}, {tot.size} samples; predict median {1e3 * np.median(pred):.3g} ms, "
                 f"update median {1e3 * np.median(upd):.3g} ms; mean iterations {it:.2f}")  # fmt: skip
-        target = status = ""
-        if N == 5:
-            target, status = f"<= {TARGET_STEP_MS:g} ms (N=5)", judge(med, TARGET_STEP_MS, "max")
-        rows.append(Row("latency", kind, f"step predict+update, B=1, N={N}: median", med, "ms", target, status, note))
+        rows.append(Row("latency", kind, f"step predict+update, B=1, N={N}: median", med, "ms", note=note))
         rows.append(Row("latency", kind, f"step predict+update, B=1, N={N}: p99", p99, "ms"))
     return rows
 
@@ -237,8 +227,7 @@ def scaling(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
             Ns = sorted(per_step)
             p = fit_exponent(Ns, [per_step[k] for k in Ns])
             rows.append(Row("scaling", kind, f"growth exponent p, time/step ~ N^p (N={Ns[0]}..{Ns[-1]})", p, "",
-                            f"<= {TARGET_EXPONENT:g}", judge(p, TARGET_EXPONENT, "max"),
-                            "least squares of log(time/step) on log N"))  # fmt: skip
+                            note="least squares of log(time/step) on log N"))  # fmt: skip
     return rows
 
 
@@ -349,8 +338,7 @@ def baseline(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     else:
         ratio = our_sps / fp_sps
         note = f"in-process, same {T} trials, per trial-step (campaign section not run)"
-    rows.append(Row("baseline", "ekf", "throughput ratio ours / FilterPy", ratio, "x", f">= {TARGET_BASELINE_RATIO:g}x",
-                    judge(ratio, TARGET_BASELINE_RATIO, "min"), note))  # fmt: skip
+    rows.append(Row("baseline", "ekf", "throughput ratio ours / FilterPy", ratio, "x", note=note))
     if ("ekf", 1) in camp:
         rows.append(Row("baseline", "ekf", "throughput ratio, in-process, same trials", our_sps / fp_sps, "x",
                         note=f"run_filter on the same {T} trials as one batch, per trial-step"))  # fmt: skip

@@ -34,7 +34,7 @@ TINY_TIME = {"dt_s": 1.0, "duration_s": 3.0, "error_window_start_s": 0.0}
 def cfg(tmp_path_factory):
     return common.BenchConfig(
         mode="smoke", out=tmp_path_factory.mktemp("bench"), time_override=TINY_TIME, repeats=1,
-        campaign_trials=2, campaign_jobs=(1, 2), chunk_trials={1: 2, 2: 2}, latency_steps=(2, 3), latency_reps=1,
+        campaign_trials=2, realistic_trials=2, campaign_jobs=(1, 2), chunk_trials={1: 2, 2: 2}, latency_steps=(2, 3), latency_reps=1,
         latency_candidates=3, scaling_points=(5, 6), scaling_batch=2, scaling_steps=2, memory_trials=2, memory_jobs=1,
         memory_interval_s=0.05, baseline_trials=2, baseline_batch=3, feature_points=(5, 6), cold_cache=False,
     )  # fmt: skip
@@ -82,8 +82,7 @@ def test_campaign_rows(results, cfg):
     assert c["trials_per_s"] == pytest.approx(wall[("ekf", "throughput, --jobs 1")])
     # 3 steps per trial; a diverged trial stops early, so at most 3 trial-steps per trial
     assert 0 < c["trial_steps_per_s"] <= 3 * c["trials_per_s"] * (1 + 1e-12)
-    (target,) = [r for r in rows["campaign"] if r.target]
-    assert target.filter == "iekf" and target.measure.endswith("--jobs 2") and target.status.endswith("*")
+    assert not [r for r in rows["campaign"] if r.target]  # informative: the judged campaigns are e2e's and realistic's
 
 
 def test_chunk_latency_scaling_rows(results):
@@ -93,12 +92,12 @@ def test_chunk_latency_scaling_rows(results):
         assert (kind, "per trial, chunk size B=1") in m and (kind, "per trial, chunk size B=2") in m
     lat = [r for r in rows["latency"] if r.measure.endswith("median")]
     assert {r.filter for r in lat} == {"iekf", "ekf"}
-    assert all(r.target == "<= 1 ms (N=5)" for r in lat)  # case B has five points
+    assert all(r.target == "" for r in lat)  # informative
     sc = rows["scaling"]
     assert {r.measure for r in sc if "N=5 " in r.measure} == {"time per step, N=5 (n=30, m=43), batch 2"}
     assert {r.measure for r in sc if "N=6 " in r.measure} == {"time per step, N=6 (n=33, m=51), batch 2"}
     expo = [r for r in sc if r.measure.startswith("growth exponent")]
-    assert len(expo) == 2 and all(r.target == "<= 2" for r in expo)
+    assert len(expo) == 2 and all(r.target == "" for r in expo)
 
 
 def test_memory_rows(results):
@@ -120,7 +119,7 @@ def test_baseline_rows(results):
     # same EKF equations from identical inputs: only round-off differs at the first update
     assert agree.value < 1e-4
     ratio = rs["throughput ratio ours / FilterPy"]
-    assert ratio.target == ">= 10x" and ratio.note.startswith("campaign EKF --jobs 1")
+    assert ratio.target == "" and ratio.note.startswith("campaign EKF --jobs 1")
 
 
 def test_filterpy_step_equals_ours_from_the_same_inputs(cfg):
@@ -232,23 +231,26 @@ def test_outputs_hold_the_rows(results, tmp_path):
     assert payload["mode"] == "smoke" and len(payload["rows"]) == len(flat)
 
 
-def test_kernel_sections_compare_numpy_and_compiled(results):
+def test_kernel_sections_measure_the_default_command(results):
     rows, _ = results
     e2e = {r.measure: r for r in rows["e2e"]}
-    for k in ("numpy", "compiled"):
-        for temp in ("cold", "warm"):
-            assert f"wall, 2 trials, --jobs 2, {k}, {temp}" in e2e
-        assert f"2-trial run, warm, {k}: median" in e2e
-    assert e2e["wall, 2 trials, --jobs 2, compiled, warm"].target == "<= 5 s (1,000 trials)"
-    assert e2e["ratio numpy / compiled (warm)"].value == pytest.approx(
-        e2e["wall, 2 trials, --jobs 2, numpy, warm"].value / e2e["wall, 2 trials, --jobs 2, compiled, warm"].value)
+    warm = e2e["wall, 2 trials, default command, warm"]
+    assert warm.target == "<= 5 s (1,000 trials)" and warm.status.endswith("*")  # projected from 2 trials
+    ref = e2e["wall, 2 trials, --kernels numpy (the reference), warm"]
+    assert e2e["ratio numpy / compiled (warm, default jobs)"].value == pytest.approx(ref.value / warm.value)
+    assert "2-trial run, warm, default command: median" in e2e and "spmc --help, warm: median" in e2e
+    real = {r.measure.split(":")[0]: r for r in rows["realistic"]}
+    assert set(real) == {"mission-realistic", "mission-mesh-dispersed"}
+    assert real["mission-realistic"].target == "<= 30 s (1,000 trials)"
+    assert real["mission-mesh-dispersed"].target == "<= 60 s (1,000 trials)"
+    assert real["mission-mesh-dispersed"].filter == "iekf+mekf"
     st = {(r.filter, r.measure): r for r in rows["steps"]}
     for kind in ("iekf", "ekf"):
-        assert st[(kind, "latency B=1, step predict+update, compiled: median")].target.startswith("<= ")
+        assert st[(kind, "latency B=1, step predict+update, compiled: median")].target == ""  # informative
         for B in (1, 2):
             assert (kind, f"throughput B={B}: ratio compiled / numpy") in st
         assert (kind, "update growth exponent p ~ N^p (N=5..6), compiled") in st
-    assert st[("ekf", "ours / FilterPy per computed step, compiled, B=3")].target == ">= 50x"
+    assert st[("ekf", "ours / FilterPy per computed step, compiled, B=3")].target == ""  # informative
     assert st[("ekf", "ours / FilterPy per computed step, compiled, B=2")].target == ""  # FilterPy's own trials
     # the judged pair timed in alternated rounds (cfg.baseline_rounds, 3 by default): FilterPy's per-round times in
     # its note, their median its value; the judged row's median over its runs in those rounds
