@@ -47,6 +47,19 @@ def test_reduced_case_matches_its_golden(case, fresh):
     assert res.ok, "\n" + cmp.format_comparison(res)
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(reg.CASES))
+def test_numpy_path_matches_the_compiled_golden_within_tolerance(case, tmp_path):
+    """The goldens are the compiled kernels' tables; the numpy reference agrees to round-off (docs/outputs.md)."""
+    if not reg.config_path(case).is_file():
+        pytest.skip(f"no configs/case{case}.yaml")
+    fresh = reg.run_case(case, tmp_path / "run", jobs=2, kernels="numpy")
+    golden = reg.golden_path(case)
+    res = cmp.compare_tables(cmp.load_percentiles(fresh), cmp.load_percentiles(golden), reg.NUMPY_RTOL, reg.ATOL,
+                             "both", f"case{case} (numpy path)", str(golden))  # fmt: skip
+    assert res.ok, "\n" + cmp.format_comparison(res)
+
+
 def perturb(src, dst, rel: float = 1e-2) -> float:
     """Copy golden ``src`` to ``dst`` with the :data:`PERTURBED` cell scaled by ``1 + rel``; return the new value."""
     df = pd.read_csv(src)
