@@ -22,13 +22,18 @@ class _Plain:
         self.t0 = time.perf_counter()
         self.last = -1e9
         self.start_done: int | None = None
+        self.last_done = -1
 
     def __call__(self, done: int, total: int, diverged: dict[str, int]) -> None:
         now = time.perf_counter()
-        if self.start_done is None:
+        first = self.start_done is None
+        if first:
             self.start_done = done
-        if done < total and now - self.last < self.every_s and done != self.start_done:
+        if not first and done < total and now - self.last < self.every_s:
             return
+        if done == total and self.last_done == total:
+            return
+        self.last_done = done
         self.last = now
         el = now - self.t0
         rate = (done - self.start_done) / el if el > 0 else 0.0
