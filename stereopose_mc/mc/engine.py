@@ -50,6 +50,7 @@ from ..sim import measurements as meas
 from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
 from . import dispersed, rows
+from .progress import PROXY_EVERY_S, StepCounter, Ticker
 from .trial import Bounds, run_chunk
 
 if TYPE_CHECKING:  # pandas is not imported by a run (~0.25 s): only by RunResult.trials / .percentiles
@@ -273,43 +274,6 @@ def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: 
     finally:
         if tick is not None:
             tick.flush()
-
-
-PROXY_EVERY_S = 0.5  # a worker process sends its chunk's trial-step count to the driver at most this often
-
-
-class StepCounter:
-    """Trial-steps done so far by the chunks of a run, for progress between chunk ends.
-
-    Each chunk owns one entry (its first trial -> its trial-steps so far), so the chunks never
-    write the same entry and a write needs no lock: a plain dict for threads, a Manager's dict
-    proxy for processes (each write a round trip to the Manager: sent at most every
-    ``PROXY_EVERY_S``). The driver polls :meth:`total`.
-    """
-
-    def __init__(self, steps: Mapping | None = None):
-        self.steps = {} if steps is None else steps
-
-    def total(self) -> int:
-        return int(sum(self.steps.values()))
-
-    class _Tick:
-        def __init__(self, steps: Mapping, key: int, every_s: float):
-            self.steps, self.key, self.every_s, self.n, self.sent_at = steps, key, every_s, 0, time.perf_counter()
-
-        def __call__(self, n: int) -> None:
-            self.n += n
-            if self.every_s <= 0 or time.perf_counter() - self.sent_at >= self.every_s:
-                self.flush()
-
-        def flush(self) -> None:
-            self.steps[self.key] = self.n
-            self.sent_at = time.perf_counter()
-
-    @classmethod
-    def tick_of(cls, steps: Mapping, key: int, every_s: float = 0.0) -> StepCounter._Tick:
-        """The ``tick(n)`` of the chunk whose first trial is ``key``."""
-        return cls._Tick(steps, key, every_s)
 
 
 AUTO_CHUNK_MAX = 250  # compiled kernels: trials per chunk at most (memory ~ chunk x steps x n^2)
@@ -629,7 +593,7 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
     n_div = {f: v.diverged().get(f, 0) for f in spec.filters}
-    ticker = _Ticker(progress, int(done.size), scn.trials, (spec.steps - 1) * len(spec.filters), n_div)
+    ticker = Ticker(progress, int(done.size), scn.trials, (spec.steps - 1) * len(spec.filters), n_div)
     ticker.report()
     manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
                            "kernels": opts.kernels}  # fmt: skip
@@ -661,63 +625,6 @@ def compile_note() -> list[str]:
     from . import warm
 
     return [] if warm.kernels_cached() else [warm.COMPILING]
-
-
-class _Ticker:
-    """The run's progress: finished chunks, and between chunk ends the trial-steps of the chunks in flight.
-
-    ``progress(done, total, diverged)`` gets whole trials: those of the finished chunks, or (if
-    more) the trials the counted trial-steps amount to (``per_trial`` trial-steps each: steps x
-    filters). A thread polls the counter every ``every_s``; calls never overlap.
-    """
-
-    def __init__(self, progress: Progress | None, start: int, total: int, per_trial: int, diverged: dict[str, int],
-                 every_s: float = 0.5):  # fmt: skip
-        self.progress, self.start, self.done, self.total = progress, start, start, total
-        self.per_trial, self.diverged, self.every_s = max(1, per_trial), diverged, every_s
-        self.steps: StepCounter | None = None
-        self._lock, self._stop = threading.Lock(), threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def counter(self, steps: Mapping | None) -> StepCounter:
-        self.steps = StepCounter(steps)
-        return self.steps
-
-    def _trials(self) -> int:
-        if self.steps is None:
-            return self.done
-        try:
-            counted = self.steps.total()
-        except (OSError, EOFError):  # the Manager is gone at the end of a run: the chunks' own count stands
-            return self.done
-        return max(self.done, min(self.total, self.start + counted // self.per_trial))
-
-    def report(self) -> None:
-        if self.progress is not None:
-            with self._lock:
-                self.progress(self._trials(), self.total, dict(self.diverged))
-
-    def chunk_done(self, n: int, diverged_by: dict[str, int]) -> None:
-        with self._lock:
-            self.done += n
-            for f, d in diverged_by.items():
-                self.diverged[f] = self.diverged.get(f, 0) + d
-        self.report()
-
-    def _poll(self) -> None:
-        while not self._stop.wait(self.every_s):
-            self.report()
-
-    def __enter__(self) -> _Ticker:
-        if self.progress is not None:
-            self._thread = threading.Thread(target=self._poll, name="spmc-progress", daemon=True)
-            self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
 
 
 def _read_manifest(out: Path) -> dict:

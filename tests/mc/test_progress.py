@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from stereopose_mc.config import load_scenario
-from stereopose_mc.mc import engine
+from stereopose_mc.mc import engine, progress
 
 from scenarios import write_scenario
 
@@ -25,7 +25,7 @@ def scenario(tmp_path_factory):
 def test_a_chunk_ticks_every_trial_step_of_every_filter(scenario, kernels):
     scn = load_scenario(scenario)
     steps: dict = {}
-    tick = engine.StepCounter.tick_of(steps, 0)
+    tick = progress.StepCounter.tick_of(steps, 0)
     co = engine.compute_chunk(scn.model_dump_json(), np.arange(3), "none", kernels, tick)
     n_filters = len(scn.filters)
     # 6 steps of 3 trials per filter, lost trials included (a lost trial's remaining steps count as done)
@@ -37,23 +37,23 @@ def test_a_chunk_ticks_every_trial_step_of_every_filter(scenario, kernels):
 def test_a_worker_tick_through_a_manager_sends_at_most_every_interval_and_on_flush():
     with Manager() as m:
         d = m.dict()
-        tick = engine.StepCounter.tick_of(d, 7, every_s=3600.0)
+        tick = progress.StepCounter.tick_of(d, 7, every_s=3600.0)
         for _ in range(5):
             tick(10)
         assert dict(d) == {}  # within the interval: nothing sent yet
         tick.flush()
         assert dict(d) == {7: 50}
-        assert engine.StepCounter(d).total() == 50
+        assert progress.StepCounter(d).total() == 50
 
 
 def test_the_ticker_reports_trials_from_trial_steps_and_chunk_ends():
     calls: list[tuple[int, int, dict]] = []
-    t = engine._Ticker(lambda done, total, div: calls.append((done, total, div)), start=10, total=110, per_trial=20,
+    t = progress.Ticker(lambda done, total, div: calls.append((done, total, div)), start=10, total=110, per_trial=20,
                        diverged={"iekf": 1}, every_s=3600.0)
     c = t.counter(None)
     t.report()
     assert calls[-1] == (10, 110, {"iekf": 1})  # resumed: 10 trials done before
-    tick_a, tick_b = (engine.StepCounter.tick_of(c.steps, k) for k in (10, 60))
+    tick_a, tick_b = (progress.StepCounter.tick_of(c.steps, k) for k in (10, 60))
     tick_a(20 * 30 + 5)  # 30 trials and a bit of chunk a
     tick_b(20 * 12)
     t.report()
@@ -70,6 +70,6 @@ def test_the_ticker_reports_trials_from_trial_steps_and_chunk_ends():
 
 def test_the_ticker_polls_from_its_thread():
     seen = threading.Event()
-    t = engine._Ticker(lambda *a: seen.set(), 0, 1, 1, {}, every_s=0.01)
+    t = progress.Ticker(lambda *a: seen.set(), 0, 1, 1, {}, every_s=0.01)
     with t:
         assert seen.wait(5)
