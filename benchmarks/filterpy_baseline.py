@@ -114,7 +114,7 @@ def run_trials(x0_hat: np.ndarray, y_feat: np.ndarray, alpha: np.ndarray, visibl
             steps += 1
             try:
                 ekf.update(z[:, None], h_jacobian, hx, R=R, args=args, hx_args=args)
-            except np.linalg.LinAlgError:
+            except (np.linalg.LinAlgError, ValueError):  # singular S, or a non-finite one (scipy's inv refuses it)
                 stop[j] = k
                 break
             ekf.x[st.QUAT] /= np.linalg.norm(ekf.x[st.QUAT])
