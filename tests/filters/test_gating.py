@@ -33,6 +33,28 @@ def test_blocks_are_the_diagonal_blocks_of_S():
         np.testing.assert_allclose(blocks[:, f], S[:, f * C : (f + 1) * C, f * C : (f + 1) * C], rtol=1e-12)
 
 
+def test_blocks_use_only_the_columns_a_feature_touches():
+    """Row-sparse H as in the filters (each feature: 13 shared columns and its own 3): the same blocks as the
+    dense product (an independent einsum), formed on 16 columns."""
+    rng = np.random.default_rng(3)
+    b, nf, c = 4, 5, 8
+    nn = 13 + 3 * nf + 2
+    A = rng.normal(size=(b, nn, nn))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(nn)
+    R = rng.uniform(0.5, 2.0, size=nf * c + 3)  # 3 pseudo rows after the features' (not gated)
+    H = np.zeros((b, nf * c + 3, nn))
+    for f in range(nf):
+        cols = np.r_[np.arange(13), 13 + 3 * f + np.arange(3)]
+        H[:, f * c : (f + 1) * c, cols] = rng.normal(size=(b, c, 16))
+    H[:, nf * c :] = rng.normal(size=(b, 3, nn))
+    H[0, 0, 5] = 0.0  # an exact zero by chance in one trial: the column is still used (other trials have it)
+    Hf = H[:, : nf * c].reshape(b, nf, c, nn)
+    dense = np.einsum("bfcn,bnm,bfdm->bfcd", Hf, P, Hf)
+    dense[..., np.arange(c), np.arange(c)] += R[: nf * c].reshape(nf, c)
+    np.testing.assert_allclose(gating.linearized_blocks(H, P, R, nf, c), dense, rtol=1e-12, atol=1e-12)
+    assert gating.feature_columns(Hf).shape == (nf, 16)
+
+
 def test_threshold_is_the_chi_square_quantile():
     # chi2(4) has survival function exp(-t/2)(1 + t/2): solve it for 1 - p = 1e-3 by hand (bisection)
     lo, hi = 0.0, 100.0
