@@ -113,7 +113,8 @@ class BenchConfig:
     @classmethod
     def quick(cls, **kw: Any) -> "BenchConfig":
         base = dict(
-            mode="quick", campaign_trials=100, realistic_trials=100, chunk_trials={1: 5, 10: 20, 100: 100}, latency_reps=3,
+            mode="quick", campaign_trials=100, realistic_trials=100, chunk_trials={1: 5, 10: 20, 100: 100},
+            latency_reps=3,
             feature_points=(5, 12, 24),
             scaling_batch=20, scaling_steps=2, growth_rounds=3, memory_trials=1000, baseline_trials=20,
             baseline_batch=20, baseline_rounds=1,

@@ -17,6 +17,6 @@ from .scenarios import edit, from_dict, load, to_yaml
 from .studies import Sweep, Tuning, sweep, tune
 
 __all__ = [
-    "Rerun", "ReportOutcome", "Run", "Scenario", "SpmcError", "Sweep", "Tuning", "default_jobs", "edit", "export", "from_dict",
-    "load", "report", "resume", "run", "sweep", "to_yaml", "tune",
+    "Rerun", "ReportOutcome", "Run", "Scenario", "SpmcError", "Sweep", "Tuning", "default_jobs", "edit", "export",
+    "from_dict", "load", "report", "resume", "run", "sweep", "to_yaml", "tune",
 ]  # fmt: skip

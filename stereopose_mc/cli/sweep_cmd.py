@@ -40,8 +40,8 @@ def sweep(
                                                                 "resume": "resuming"}[what])  # fmt: skip
 
     try:
-        res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size, kernels=kernels,
-                        timeseries=timeseries, on_point=on_point, progress_of=lambda p: progress_reporter(p.name, quiet),
+        res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size,
+                        kernels=kernels, timeseries=timeseries, on_point=on_point, progress_of=lambda p: progress_reporter(p.name, quiet),
                         command=list(sys.argv))  # fmt: skip
         if report:
             typer.echo(str(res.report()))

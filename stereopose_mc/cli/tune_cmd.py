@@ -29,8 +29,8 @@ def tune(
                        f"{ev.nees.get('nees_gauge', float('nan')):.3g}, NIS/dof {ev.nis:.3g}, lost {ev.lost}", err=True)  # fmt: skip
 
     try:
-        res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out, kernels=kernels,
-                       progress=progress)  # fmt: skip
+        res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,
+                       kernels=kernels, progress=progress)  # fmt: skip
     except api.SpmcError as exc:
         fail(exc.lines)
     typer.echo(res.table.to_string(float_format=lambda v: f"{v:.3g}"))

@@ -41,8 +41,8 @@ def dispatchers() -> list:
     out = []
     for info in pkgutil.iter_modules(kernels.__path__):
         mod = importlib.import_module(f"{kernels.__name__}.{info.name}")
-        out += [v for v in vars(mod).values()
-                if isinstance(v, CPUDispatcher) and v.__module__ == mod.__name__ and getattr(v, "_cache", None)]  # fmt: skip
+        out += [v for v in vars(mod).values() if isinstance(v, CPUDispatcher) and v.__module__ == mod.__name__
+                and getattr(v, "_cache", None)]  # fmt: skip
     return out
 
 

@@ -121,7 +121,8 @@ def refresh(cases: str | list[str], jobs: int = 2, config_dir: Path = CONFIG_DIR
 
 
 def check(cases: str | list[str], jobs: int = 2, rtol: float = RTOL, atol: float = ATOL,
-          config_dir: Path = CONFIG_DIR, golden_dir: Path = GOLDEN_DIR, echo=print, kernels: str = "compiled") -> bool:  # fmt: skip
+          config_dir: Path = CONFIG_DIR, golden_dir: Path = GOLDEN_DIR, echo=print,
+          kernels: str = "compiled") -> bool:  # fmt: skip
     """Rerun ``cases`` on ``kernels`` and compare each with its golden; print the diffs; True when all match.
 
     The goldens are the compiled kernels' tables; ``kernels="numpy"`` checks the reference path against

@@ -106,7 +106,8 @@ def test_an_open_loop_filter_runs_through_the_engine_and_drifts_as_the_dynamics(
 def test_a_filter_without_a_compiled_step_runs_numpy_under_compiled_kernels_and_says_so(open_loop):
     scn = _scenario([{"type": "open_loop"}])
     trials = np.arange(2)
-    numpy = _errors(engine.compute_chunk(scn.model_dump_json(), trials, "full").timeseries_table, "open_loop", trials)
+    ref = engine.compute_chunk(scn.model_dump_json(), trials, "full", kernels="numpy")
+    numpy = _errors(ref.timeseries_table, "open_loop", trials)
     with pytest.warns(UserWarning, match="filter type 'open_loop' has no compiled step: its trials run the numpy step"):
         out = engine.compute_chunk(scn.model_dump_json(), trials, "full", kernels="compiled")
     np.testing.assert_array_equal(_errors(out.timeseries_table, "open_loop", trials), numpy)

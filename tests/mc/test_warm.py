@@ -52,7 +52,8 @@ def test_a_compiled_run_says_when_it_compiles(tmp_path, monkeypatch, cold):
     from stereopose_mc.config import load_scenario
     from stereopose_mc.mc import engine
 
-    scn = write_scenario(tmp_path / "s.yaml", trials=2, time={"dt_s": 1.0, "duration_s": 3.0, "error_window_start_s": 0.0})
+    short = {"dt_s": 1.0, "duration_s": 3.0, "error_window_start_s": 0.0}
+    scn = write_scenario(tmp_path / "s.yaml", trials=2, time=short)
     monkeypatch.setattr(warm, "kernels_cached", lambda: not cold)
     notes: list[str] = []
     engine.run(load_scenario(scn), tmp_path / "run", engine.RunOptions(say=notes.append, command=["test"]))
