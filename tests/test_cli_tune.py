@@ -55,3 +55,15 @@ def test_tune_bad_input_exits_2(mistuned, tmp_path):
     assert r.exit_code == 2 and "--trials" in r.output
     r = runner.invoke(app, ["tune", str(tmp_path / "missing.yaml"), "--filter", "iekf"])
     assert r.exit_code == 2
+    r = runner.invoke(app, ["tune", str(mistuned), "--filter", "iekf", "--kernels", "fast"])
+    assert r.exit_code == 2 and "--kernels must be numpy or compiled" in r.output
+
+
+def test_tune_evaluations_agree_on_both_kernels(mistuned):
+    from stereopose_mc.config import load_scenario
+    from stereopose_mc.studies import tuning
+
+    scn = load_scenario(mistuned)
+    ev = {k: tuning.tune(scn, "iekf", trials=4, max_evaluations=1, kernels=k).before for k in ("numpy", "compiled")}
+    assert ev["numpy"].lost == ev["compiled"].lost
+    assert ev["compiled"].nis == pytest.approx(ev["numpy"].nis, rel=1e-6)

@@ -90,3 +90,15 @@ def test_validate_checks_every_point_of_a_sweep_file(tmp_path):
     bad.write_text(f"sweep:\n  scenario: {CONFIGS / 'caseB.yaml'}\n  set: {{camera.baseline_m: [1.0, 0.0]}}\n")
     r = CliRunner().invoke(app, ["validate", str(bad)])
     assert r.exit_code == 2 and "camera.baseline_m=0.0" in r.output
+
+
+def test_sweep_points_run_the_compiled_kernels_by_default_and_numpy_on_request(grid, tmp_path):
+    root, cfg = grid
+    for p in json.loads((root / "out" / "sweep.json").read_text())["points"]:
+        assert json.loads((root / "out" / p["name"] / "manifest.json").read_text())["backend"]["kernels"] == "compiled"
+    r = CliRunner().invoke(app, ["sweep", str(cfg), "--set", "camera.baseline_m=0.5", "--trials", "2", "--out",
+                                 str(tmp_path / "np"), "-q", "--timeseries", "none", "--no-report",
+                                 "--kernels", "numpy"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    (point,) = json.loads((tmp_path / "np" / "sweep.json").read_text())["points"]
+    assert json.loads((tmp_path / "np" / point["name"] / "manifest.json").read_text())["backend"]["kernels"] == "numpy"
