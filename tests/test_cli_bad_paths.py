@@ -137,7 +137,7 @@ def test_workers_die_with_their_parent(tmp_path):
     """SIGKILL the driver of a --jobs 2 run: its loky workers exit within seconds, not minutes."""
     f = write_scenario(tmp_path / "s.yaml", trials=40, time={"dt_s": 1.0, "duration_s": 100.0})
     cmd = [sys.executable, "-m", "stereopose_mc.cli.main", "run", str(f), "--out", str(tmp_path / "run"),
-           "--jobs", "2", "--chunk-size", "20", "--quiet", "--no-report"]  # fmt: skip
+           "--jobs", "2", "--chunk-size", "20", "--quiet", "--no-report", "--kernels", "numpy"]  # fmt: skip (loky)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: list[psutil.Process] = []
     try:

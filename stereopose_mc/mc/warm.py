@@ -75,19 +75,21 @@ def kernels_cached() -> bool:
 
 def warm(config_dir: Path = ROOT / "configs", steps: int = WARM_STEPS, echo=print) -> float:
     """Run ``steps`` steps of 2 trials of each warm-up scenario on the compiled kernels; return the seconds."""
-    from .. import api
+    from ..config import load_scenario
+    from . import engine
 
     t0 = time.perf_counter()
+    opts = engine.RunOptions(trials=2, jobs=1, kernels="compiled", timeseries="none", overwrite=True,
+                             command=["python", "-m", "stereopose_mc.mc.warm"])  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="spmc-warm-") as tmp:
         for name in WARM_SCENARIOS:
             path = Path(config_dir) / name
             if not path.is_file():
                 continue
-            scn = api.load(path)
-            scn = api.edit(scn, {"time.duration_s": steps * scn.time.dt_s, "time.error_window_start_s": 0.0})
+            dt = load_scenario(path).time.dt_s
+            scn = load_scenario(path, {"time": {"dt_s": dt, "duration_s": steps * dt, "error_window_start_s": 0.0}})
             t1 = time.perf_counter()
-            api.run(scn, trials=2, out=Path(tmp) / name, jobs=1, kernels="compiled", timeseries="none",
-                    command=["python", "-m", "stereopose_mc.mc.warm"])  # fmt: skip
+            engine.run(scn, Path(tmp) / name, opts)
             echo(f"warm: {name} {time.perf_counter() - t1:.1f} s")
     return time.perf_counter() - t0
 
