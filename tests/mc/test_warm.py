@@ -30,9 +30,10 @@ def test_index_states(tmp_path):
 
 
 @pytest.mark.parametrize("states,cached", [
-    (["fresh", "callee"], True), (["fresh", "stale"], False), (["callee"], False), ([], False),
+    (["fresh", "callee"], True), (["fresh", "stale"], True), (["stale", "stale"], False), (["callee"], False),
+    ([], False),
 ])  # fmt: skip
-def test_kernels_cached_needs_one_fresh_index_and_no_stale_one(tmp_path, monkeypatch, states, cached):
+def test_kernels_cached_needs_one_index_of_the_current_stamp(tmp_path, monkeypatch, states, cached):
     content = {"fresh": (b"now", {"s": 1}), "stale": (b"old", {"s": 1}), "callee": None}
     ds = [_dispatcher(tmp_path, f"{s}{i}", content=content[s]) for i, s in enumerate(states)]
     monkeypatch.setattr(warm, "dispatchers", lambda: ds)
