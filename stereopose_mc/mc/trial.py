@@ -371,7 +371,7 @@ def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude"
         if M is None:
             var = np.diagonal(P, axis1=-2, axis2=-1)[..., rows]
         else:
-            var = np.einsum("...ij,...jk,...ik->...i", M, P, M)
+            var = np.sum((M @ P) * M, axis=-1)  # diag(M P M^T) by one BLAS product
         return eps * _AXIS_SCALE, np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
 
 
