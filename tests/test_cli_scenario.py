@@ -232,9 +232,14 @@ def test_simulate_refuses_non_empty_out(tmp_path):
     assert r.exit_code == 2 and "--overwrite" in r.stderr
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     r = spmc("simulate", CONFIGS / "caseB.yaml", "--out", out, "--no-noise", "--overwrite")
-    assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "manifest.json", "measurements.parquet",
-                                                      "truth.parquet"]  # fmt: skip
+    assert r.exit_code == 2 and "not a run, sweep or simulation directory" in r.stderr  # issue 34 item 1
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    (out / "keep.txt").unlink()
+    for _ in range(2):  # into the empty directory, then over the simulation directory
+        r = spmc("simulate", CONFIGS / "caseB.yaml", "--out", out, "--no-noise", "--overwrite")
+        assert r.exit_code == 0, r.output
+        assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "manifest.json", "measurements.parquet",
+                                                          "truth.parquet"]  # fmt: skip
 
 
 def test_simulate_with_disparity(tmp_path):

@@ -65,16 +65,13 @@ def simulate(
     trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:
     """Simulate the truth and one noisy measurement set of a scenario."""
-    from ..rundir.store import RunDirError
+    from ..rundir.store import RunDirError, check_replaceable
     from ..outputs.simulation import simulate as run_simulate
 
     scn = load_or_exit(scenario)
     out = out or Path("runs") / f"{scn.name}-sim"
-    if out.exists() and not out.is_dir():
-        fail(f"{out} exists and is not a directory")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        fail(f"{out} already exists and is not empty; pass --overwrite to replace it")
     try:
+        check_replaceable(out, overwrite)  # before any computation
         s = run_simulate(scn, out, noise=not no_noise, seed=seed, overwrite=overwrite, command=sys.argv, trial=trial)
     except (RunDirError, ValueError) as exc:
         fail(str(exc))

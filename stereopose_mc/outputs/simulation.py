@@ -12,7 +12,7 @@ import yaml
 from ..config.resolve import setup_of
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..core import camera, state as st
-from ..rundir.store import atomic_write_text, base_manifest, now_iso, prepare_dir, write_json, write_parquet
+from ..rundir.store import atomic_write_text, base_manifest, build_dir, check_replaceable, now_iso, write_json, write_parquet
 from ..sim import measurements as meas
 from ..sim.truth import Truth, simulate_truth
 
@@ -77,6 +77,7 @@ def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None
     numbers trial 0 of ``spmc run`` sees. With ``trial`` j: trial j's truth (its dispersed
     values, if the scenario has dispersions) and noise, as in ``spmc run``.
     """
+    check_replaceable(out, overwrite)  # before any computation
     start = now_iso()
     root = scenario.seed if seed is None else seed
     setup = setup_of(scenario)
@@ -103,22 +104,25 @@ def simulate(scenario: Scenario, out: Path, noise: bool = True, seed: int | None
         m = meas.Measurements(y=noisy.y[0], alpha=noisy.alpha[0], visible=exact.visible)
     else:
         m = exact
-    prepare_dir(out, overwrite)
-    md = {"scenario": scenario.name, "schema_version": str(SCHEMA_VERSION), "seed": str(root), "noise": str(noise)}
-    if trial is not None:
-        md["trial"] = str(trial)
-    tf = truth_frame(truth)
-    for j, a in enumerate("xyz"):
-        tf[f"alpha_meas_{a}"] = m.alpha[:, j]
-    write_parquet(out / "truth.parquet", tf, md, units=sim_units(tf.columns))
-    mf = measurement_frame(truth.t, m, setup.disparity)
-    write_parquet(out / "measurements.parquet", mf, md, units=sim_units(mf.columns))
-    atomic_write_text(out / "config.yaml", yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
-    manifest = base_manifest(command)
-    manifest.update(kind="simulate", scenario=scenario.name, seed=root, noise=noise, start=start, end=now_iso())
-    if trial is not None:
-        manifest.update(trial=trial, dispersed_values=dispersed_values)
-    write_json(out / "manifest.json", manifest)
+
+    def populate(d: Path) -> None:
+        md = {"scenario": scenario.name, "schema_version": str(SCHEMA_VERSION), "seed": str(root), "noise": str(noise)}
+        if trial is not None:
+            md["trial"] = str(trial)
+        tf = truth_frame(truth)
+        for j, a in enumerate("xyz"):
+            tf[f"alpha_meas_{a}"] = m.alpha[:, j]
+        write_parquet(d / "truth.parquet", tf, md, units=sim_units(tf.columns))
+        mf = measurement_frame(truth.t, m, setup.disparity)
+        write_parquet(d / "measurements.parquet", mf, md, units=sim_units(mf.columns))
+        atomic_write_text(d / "config.yaml", yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
+        manifest = base_manifest(command)
+        manifest.update(kind="simulate", scenario=scenario.name, seed=root, noise=noise, start=start, end=now_iso())
+        if trial is not None:
+            manifest.update(trial=trial, dispersed_values=dispersed_values)
+        write_json(d / "manifest.json", manifest)
+
+    build_dir(out, overwrite, populate)
     rng = np.linalg.norm(camera.feature_kinematics(truth.x)[0], axis=-1)
     return SimulateSummary(
         steps=setup.steps,

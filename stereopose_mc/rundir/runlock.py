@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .store import RunDirError, now_iso, umask
+from .store import RunDirError, check_replaceable, now_iso, umask
 
 LOCK_NAME = ".lock"
 
@@ -79,12 +79,8 @@ def create_locked(out: Path, overwrite: bool, populate: Callable[[Path], None], 
     busy run is never replaced) and swaps the old directory out by renames.
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise RunDirError(f"{out} exists and is not a directory; choose another --out")
     old_fd = None
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
+    if check_replaceable(out, overwrite):
         old_fd = acquire(out, what)
     stage = trash = None
     try:

@@ -12,7 +12,7 @@ import sys
 import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 if TYPE_CHECKING:  # pandas and pyarrow are imported where used, so that `spmc --help` starts fast
     import pandas as pd
@@ -220,18 +220,74 @@ def read_parquet_metadata(path: Path) -> dict[str, str]:
     return {k.decode(): v.decode() for k, v in md.items()}
 
 
-def prepare_dir(path: Path, overwrite: bool) -> None:
-    """Create an empty output directory; refuse to reuse a non-empty one unless ``overwrite``."""
+TOOL_KINDS = ("run", "simulate", "dynamics", "sweep")  # the ``kind`` of the directories this tool writes
+
+
+def tool_dir_kind(path: Path) -> str | None:
+    """The kind of directory this tool wrote at ``path`` (its ``manifest.json``, or a sweep's
+    ``sweep.json``, says ``"package": "stereopose_mc"`` and a known ``kind``), else None."""
+    for name in ("manifest.json", "sweep.json"):
+        f = Path(path) / name
+        try:
+            if not f.is_file() or f.stat().st_size > 1 << 24:
+                continue
+            m = json.loads(f.read_bytes())
+        except (OSError, ValueError):
+            continue
+        if isinstance(m, dict) and m.get("package") == "stereopose_mc" and m.get("kind") in TOOL_KINDS:
+            return str(m["kind"])
+    return None
+
+
+def check_replaceable(path: Path, overwrite: bool) -> bool:
+    """Whether ``path`` holds something to replace (a non-empty directory): refuse unless ``overwrite``
+    and the directory is one this tool wrote (recognised by its manifest). :class:`RunDirError` otherwise."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise RunDirError(f"{path} exists and is not a directory; choose another --out")
     try:
-        if path.exists() and any(path.iterdir()):
-            if not overwrite:
-                raise RunDirError(f"{path} already exists and is not empty; pass --overwrite to replace it")
-            shutil.rmtree(path)
-        path.mkdir(parents=True, exist_ok=True)
-        probe = tempfile.NamedTemporaryFile(dir=path, prefix=".probe-")
-        probe.close()
+        full = path.is_dir() and any(path.iterdir())
     except OSError as exc:
-        raise RunDirError(f"{path}: cannot create or write it ({exc.strerror})") from None
+        raise RunDirError(f"{path}: cannot read it ({exc.strerror})") from None
+    if not full:
+        return False
+    if not overwrite:
+        raise RunDirError(f"{path} already exists and is not empty; pass --overwrite to replace it")
+    if tool_dir_kind(path) is None:
+        raise RunDirError(f"{path} is not a run, sweep or simulation directory of spmc (no spmc manifest.json); "
+                          "--overwrite replaces only those: choose another --out")  # fmt: skip
+    return True
+
+
+def build_dir(path: Path, overwrite: bool, populate: Callable[[Path], Any]) -> Any:
+    """Write directory ``path`` complete or not at all: ``populate(stage)`` fills a hidden sibling,
+    which then replaces ``path`` by renames (an old directory only if :func:`check_replaceable`)."""
+    path = Path(path)
+    replace = check_replaceable(path, overwrite)
+    stage = trash = None
+    try:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            stage = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.new-"))
+            os.chmod(stage, 0o777 & ~umask())
+        except OSError as exc:
+            raise RunDirError(f"{path}: cannot create it in {path.parent} ({exc.strerror})") from None
+        result = populate(stage)
+        try:
+            if replace:
+                trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.old-"))
+                os.rename(path, trash / "old")
+            elif path.is_dir():
+                path.rmdir()  # empty
+            os.rename(stage, path)
+        except OSError as exc:
+            if trash is not None and (trash / "old").exists() and not path.exists():
+                os.rename(trash / "old", path)
+            raise RunDirError(f"{path}: cannot write it ({exc.strerror})") from None
+        stage = None
+        return result
+    finally:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+        if trash is not None:
+            shutil.rmtree(trash, ignore_errors=True)

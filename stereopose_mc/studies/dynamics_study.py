@@ -609,11 +609,8 @@ def run_dynamics(
     The directory is checked before any computation, and created only when the results are ready.
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise store.RunDirError(f"{out} exists and is not a directory; choose another --out")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise store.RunDirError(f"{out} already exists and is not empty; pass --overwrite to replace it")
+    store.check_replaceable(out, overwrite)
     r = run_studies(scn, options)
-    store.prepare_dir(out, overwrite)
-    r.files = write_outputs(r, out, command)
+    staged = store.build_dir(out, overwrite, lambda d: (d, write_outputs(r, d, command)))
+    r.files = [out / p.relative_to(staged[0]) for p in staged[1]]
     return r
