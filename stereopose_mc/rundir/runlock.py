@@ -12,13 +12,11 @@ import fcntl
 import json
 import os
 import platform
-import shutil
-import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .store import RunDirError, check_replaceable, now_iso, umask
+from .store import RunDirError, build_dir, check_replaceable, now_iso
 
 LOCK_NAME = ".lock"
 
@@ -79,37 +77,19 @@ def create_locked(out: Path, overwrite: bool, populate: Callable[[Path], None], 
     busy run is never replaced) and swaps the old directory out by renames.
     """
     out = Path(out)
-    old_fd = None
-    if check_replaceable(out, overwrite):
-        old_fd = acquire(out, what)
-    stage = trash = None
-    try:
-        try:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.new-"))
-            os.chmod(stage, 0o777 & ~umask())
-        except OSError as exc:
-            raise RunDirError(f"{out}: cannot create it in {out.parent} ({exc.strerror})") from None
+    old_fd = acquire(out, what) if check_replaceable(out, overwrite) else None
+    fd = None
+
+    def fill(stage: Path) -> None:
+        nonlocal fd
         fd = acquire(stage, what)
-        try:
-            populate(stage)
-            if old_fd is not None:
-                trash = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-                os.rename(out, trash / "run")
-            os.rename(stage, out)  # onto a missing or empty directory
-        except OSError as exc:
-            release(fd)
-            if trash is not None and (trash / "run").exists() and not out.exists():
-                os.rename(trash / "run", out)  # put the old run back
-            raise RunDirError(f"{out}: cannot write the run directory ({exc.strerror})") from None
-        except BaseException:
-            release(fd)
-            raise
-        stage = None
-        return fd
+        populate(stage)
+
+    try:
+        build_dir(out, overwrite, fill)
+    except BaseException:
+        release(fd)
+        raise
     finally:
-        if stage is not None:
-            shutil.rmtree(stage, ignore_errors=True)
-        if trash is not None:
-            shutil.rmtree(trash, ignore_errors=True)
         release(old_fd)
+    return fd

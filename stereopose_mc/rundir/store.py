@@ -272,8 +272,8 @@ def build_dir(path: Path, overwrite: bool, populate: Callable[[Path], Any]) -> A
             os.chmod(stage, 0o777 & ~umask())
         except OSError as exc:
             raise RunDirError(f"{path}: cannot create it in {path.parent} ({exc.strerror})") from None
-        result = populate(stage)
         try:
+            result = populate(stage)
             if replace:
                 trash = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.old-"))
                 os.rename(path, trash / "old")
