@@ -31,6 +31,11 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         raise RerunError(str(exc)) from None
     if out is not None and Path(out).is_dir():
         raise RerunError(f"--out {out} is a directory: give a file name, e.g. {Path(out) / f't{trial}.parquet'}")
+    if out is not None:
+        try:
+            store.refuse_non_regular(Path(out))
+        except OSError as exc:
+            raise RerunError(f"--out {out}: {exc.strerror}") from None
     if trial >= scn.trials:
         raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
     try:  # the run's own kernels: the two paths agree to round-off, not bit for bit

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import os
 import platform
 import shutil
+import stat
 import subprocess
 import sys
 import tempfile
@@ -66,9 +68,22 @@ def umask() -> int:
     return mask
 
 
+def refuse_non_regular(path: Path) -> None:
+    """``OSError`` when ``path`` exists and is neither a regular file nor a symbolic link (a device, a
+    FIFO, a socket, a directory): a write replaces only files (a link is replaced, its target never)."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+        raise OSError(errno.EEXIST, "exists and is not a regular file; not replacing it", str(path))
+
+
 def _publish(tmp: str | Path, path: Path) -> None:
-    """Give a temporary file (``mkstemp``: mode 0600) the mode the umask asks for, then rename it."""
+    """Give a temporary file (``mkstemp``: mode 0600) the mode the umask asks for, then rename it
+    (never over anything but a regular file: :func:`refuse_non_regular`)."""
     os.chmod(tmp, 0o666 & ~umask())
+    refuse_non_regular(path)
     os.replace(tmp, path)
 
 

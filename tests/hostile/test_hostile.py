@@ -58,3 +58,24 @@ def test_overwrite_replaces_a_run_directory(run6, quick_scenario, tmp_path):
     shutil.copytree(run6, d)
     run_ok("run", quick_scenario, "--out", d, "--overwrite", "--trials", 2)
     assert json.loads((d / "manifest.json").read_text())["trials"] == 2
+
+
+# 2. never write over a non-regular file
+def test_rerun_out_refuses_a_fifo(run6, tmp_path):
+    n = tmp_path / "n"
+    os.mkfifo(n)
+    one_error_line(spmc("rerun", run6, "--trial", 0, "--out", n), str(n), "not a regular file")
+    assert stat.S_ISFIFO(os.lstat(n).st_mode)
+    assert [p.name for p in tmp_path.iterdir()] == ["n"]
+
+
+def test_atomic_write_refuses_a_non_regular_file(tmp_path):
+    from stereopose_mc.rundir import store
+
+    n = tmp_path / "n"
+    os.mkfifo(n)
+    with pytest.raises(OSError, match="not a regular file"):
+        store.atomic_write_text(n, "x")
+    with pytest.raises(OSError, match="not a regular file"):
+        store.write_parquet(n, {"a": __import__("numpy").arange(3)})
+    assert stat.S_ISFIFO(os.lstat(n).st_mode) and [p.name for p in tmp_path.iterdir()] == ["n"]
