@@ -44,7 +44,7 @@ from ..config.dispersions import units as dispersion_units
 from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
 from ..core.layout import n_state
-from ..rundir import integrity, runlock, store, tables
+from ..rundir import integrity, publish, runlock, store, tables
 from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
@@ -427,8 +427,9 @@ def _merged(files: list[Path], order: dict[str, int]) -> tables.Columns:
 
 
 def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
-             spec: integrity.RunSpec | None = None) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
-    """Merge chunk files into the run's tables and write the percentile tables.
+             spec: integrity.RunSpec | None = None, dest: Path | None = None) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
+    """Merge chunk files into the run's tables and write the percentile tables into ``dest``
+    (default ``out``; a run stages them and publishes them together: ``rundir/publish.py``).
 
     With ``spec``, the merged tables are checked first (exactly one row per trial x filter,
     the full time series when it is on): :class:`integrity.IntegrityError`, nothing written.
@@ -436,17 +437,18 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     """
     order = {name: i for i, name in enumerate(filter_order)}
     trials = _merged(sorted((out / "chunks").glob("trials-*.parquet")), order)
+    chunk_dir, out = out / "chunks", (out if dest is None else dest)
     if spec is not None:
         integrity.check_trials_table(trials, spec)
     store.write_parquet(out / "trials.parquet", trials, _parquet_meta(scn, shash, "trials"),
                         units={**tables.COLUMN_UNITS, **dispersion_units(scn)})
-    files = sorted((out / "chunks").glob("timing-*.parquet"))
+    files = sorted(chunk_dir.glob("timing-*.parquet"))
     if files:
         _write_table(out / "timing.parquet", _merged(files, order), _parquet_meta(scn, shash, "timing"))
     # the time series can be large: streamed chunk by chunk (each chunk file is already
     # sorted by trial, filter, step, and the chunks are disjoint trial ranges, so file
     # order by first trial is trial order)
-    files = sorted((out / "chunks").glob("timeseries-*.parquet"))
+    files = sorted(chunk_dir.glob("timeseries-*.parquet"))
     if files:
         n_ts = store.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"),
                                           units=tables.COLUMN_UNITS)
@@ -485,7 +487,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
         filters=[f.label for f in scn.filters], state_dim=n_state(feature_count(scn)),
         timeseries=opts.timeseries, code_version=code, start=store.now_iso(),
-        end=None, chunks=[],
+        end=None, published=None, chunks=[],
     )  # fmt: skip
 
     def populate(d: Path) -> None:
@@ -568,6 +570,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
             recorded = int(manifest["trials"])
             scn = _resume_checks(scn, out, opts, manifest, shash)
             manifest["code_version"] = code
+            manifest.update(end=None, published=None)  # the completion mark, set again once published
             if scn.trials != recorded:
                 store.atomic_write_text(out / "config.yaml",
                                         yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))  # fmt: skip
@@ -609,11 +612,14 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
             store.write_json(out / "manifest.json", manifest)
             ticker.chunk_done(co.trials.size, co.diverged_by)
     v = integrity.verify_chunks(chunk_dir, spec)
+    stage = publish.new_stage(out)
     try:
         integrity.check_complete(v, spec)
-        trials, pt = finalize(out, scn, shash, spec.filters, spec)
+        trials, pt = finalize(out, scn, shash, spec.filters, spec, dest=stage)
     except integrity.IntegrityError as exc:
+        publish.remove_stages(out)
         raise RunError("refusing to merge (nothing published): " + "; ".join(exc.problems)) from None
+    manifest["published"] = publish.publish(stage, out)
     manifest["end"] = store.now_iso()
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
     store.write_json(out / "manifest.json", manifest)

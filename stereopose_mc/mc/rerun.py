@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..rundir import store, tables
+from ..rundir import publish, store, tables
 from . import engine
 
 
@@ -24,7 +24,13 @@ class RerunResult:
 
 
 def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResult:
-    """Recompute trial ``trial`` alone; compare with the run's ``trials.parquet`` row(s)."""
+    """Recompute trial ``trial`` alone; compare with the run's ``trials.parquet`` row(s).
+
+    An incomplete or inconsistent run directory (``rundir/publish.py``) is refused.
+    """
+    bad = publish.dir_problems(Path(run_dir))
+    if bad:
+        raise RerunError(bad[0])
     try:
         scn = engine.load_run_scenario(run_dir)
     except (engine.RunError, ValueError) as exc:

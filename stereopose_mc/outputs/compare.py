@@ -32,7 +32,12 @@ class CompareError(Exception):
 
 def resolve_table_path(path: Path) -> Path:
     """A run directory -> its ``percentiles.csv`` (else ``percentiles.parquet``); a file -> itself."""
+    from ..rundir.publish import dir_problems
+
     path = Path(path)
+    bad = dir_problems(path if path.is_dir() else path.parent)  # an interrupted or mixed run's table
+    if bad:
+        raise CompareError(bad[0])
     if path.is_dir():
         for name in ("percentiles.csv", "percentiles.parquet"):
             if (path / name).is_file():

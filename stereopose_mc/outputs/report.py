@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from ..rundir.publish import problems as publish_problems
 from ..data import THESIS_COMPUTE_TIME_CASE_B_S, THESIS_TABLE_NUMBER, thesis_case, thesis_percentiles
 from ..filters.registry import thesis_role
 from ..rundir import store
@@ -158,7 +159,10 @@ def load_run(run_dir: Path) -> RunData:
                 problems.append(f"manifest.json has kind {m.get('kind')!r}, not 'run' (not made by 'spmc run')")
             else:
                 manifest = m
-        except json.JSONDecodeError as exc:
+                unpublished = publish_problems(run_dir, m)
+                if unpublished:  # what else is missing or odd follows from it
+                    raise ReportError(run_dir, unpublished)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             problems.append(f"manifest.json is unreadable ({exc})")
     if "trials.parquet" not in missing:
         trials = _read_parquet(run_dir / "trials.parquet", problems)

@@ -26,7 +26,7 @@ import yaml
 from ..config.loader import ScenarioError, load_scenario_text
 from ..config.schema import Scenario
 from ..mc import engine
-from ..rundir import store
+from ..rundir import publish, store
 from ..rundir.tables import ERROR_NAMES
 
 SWEEP_FILE = "sweep.json"
@@ -188,7 +188,8 @@ def _finished(run_dir: Path) -> bool:
         m = json.loads((run_dir / "manifest.json").read_text())
     except (OSError, json.JSONDecodeError):
         return False
-    return m.get("kind") == "run" and m.get("end") is not None and (run_dir / "trials.parquet").is_file()
+    return (m.get("kind") == "run" and m.get("end") is not None and (run_dir / "trials.parquet").is_file()
+            and not publish.problems(run_dir, m))  # fmt: skip
 
 
 def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = False, trials: int | None = None,

@@ -79,3 +79,69 @@ def test_atomic_write_refuses_a_non_regular_file(tmp_path):
     with pytest.raises(OSError, match="not a regular file"):
         store.write_parquet(n, {"a": __import__("numpy").arange(3)})
     assert stat.S_ISFIFO(os.lstat(n).st_mode) and [p.name for p in tmp_path.iterdir()] == ["n"]
+
+
+# 3. atomic publication: a crash while publishing leaves a run that report/compare/rerun refuse and --resume repairs
+def _crash_after(monkeypatch, name: str):
+    """Make the publication die right after ``name`` is renamed into the run directory."""
+    real = os.replace
+
+    def replace(src, dst, *a, **k):
+        real(src, dst, *a, **k)
+        if Path(dst).name == name and Path(src).parent.name.startswith(".publish-"):
+            raise KeyboardInterrupt(f"killed after {name}")
+
+    monkeypatch.setattr(os, "replace", replace)
+
+
+def _published_bytes(d: Path) -> dict[str, bytes]:
+    names = ("trials.parquet", "timeseries.parquet", "percentiles.csv", "percentiles.parquet")  # timing: wall times
+    return {n: (d / n).read_bytes() for n in names}
+
+
+def _refused_everywhere(d: Path, ref: Path, what: str):
+    one_error_line(spmc("report", d), str(d), what, "--resume")
+    r = spmc("compare", d, ref)
+    assert r.exit_code == 2 and what in r.output and "Traceback" not in r.output, r.output
+    one_error_line(spmc("rerun", d, "--trial", 0), what)
+
+
+@pytest.mark.parametrize("extend", [False, True])
+def test_crash_while_publishing(extend, run6, quick_scenario, tmp_path, monkeypatch):
+    import shutil
+
+    from stereopose_mc import api
+
+    d = tmp_path / "run"
+    if extend:  # extend a finished 3-trial run to 6, killed right after trials.parquet is renamed into place
+        run_ok("run", quick_scenario, "--out", d, "--trials", 3, "--chunk-size", 3)
+    _crash_after(monkeypatch, "trials.parquet")
+    with pytest.raises(KeyboardInterrupt):
+        if extend:
+            api.resume(d, trials=6)
+        else:
+            api.run(quick_scenario, out=d)
+    monkeypatch.undo()
+    m = json.loads((d / "manifest.json").read_text())
+    assert m["end"] is None and m["published"] is None
+    _refused_everywhere(d, run6, "incomplete run")
+    run_ok("run", "--resume", d)  # repairs: publishes again, the same bytes as an uninterrupted run
+    assert _published_bytes(d) == _published_bytes(run6)
+    assert not list(d.glob(".publish-*"))
+    assert spmc("report", d).exit_code == 0
+    shutil.rmtree(d / "figures")
+
+
+def test_mixed_tables_are_refused(run6, tmp_path):
+    import shutil
+
+    d = tmp_path / "run"
+    shutil.copytree(run6, d)
+    other = tmp_path / "other"
+    shutil.copytree(run6, other)
+    (d / "timing.parquet").write_bytes((d / "timing.parquet").read_bytes() + b"x")
+    _refused_everywhere(d, other, "timing.parquet is not the file the run published")
+    (d / "timeseries.parquet").unlink()
+    one_error_line(spmc("rerun", d, "--trial", 0), "timeseries.parquet is missing")
+    run_ok("run", "--resume", d)
+    assert _published_bytes(d) == _published_bytes(run6)

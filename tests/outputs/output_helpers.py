@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -20,9 +21,19 @@ def spmc(*args):
 
 
 def copy_run(src: Path, dst: Path, drop: tuple[str, ...] = ()) -> Path:
-    """Copy a run's table files (not its figures or report) to ``dst``, leaving out ``drop``."""
+    """Copy a run's table files (not its figures or report) to ``dst``, leaving out ``drop``.
+
+    The copy stands for a run directory assembled or edited by hand: its manifest has no
+    publication record (``rundir/publish.py``), so its tables may be edited.
+    """
     dst.mkdir(parents=True)
     for n in RUN_FILES:
         if n not in drop and (src / n).exists():
             shutil.copy2(src / n, dst / n)
+    m = dst / "manifest.json"
+    if m.is_file() and "manifest.json" not in drop:
+        d = json.loads(m.read_text())
+        if isinstance(d, dict):
+            d.pop("published", None)
+            m.write_text(json.dumps(d))
     return dst
