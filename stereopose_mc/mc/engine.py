@@ -480,6 +480,12 @@ def _say(opts: RunOptions, lines: list[str], limit: int = 20) -> None:
         opts.say(f"... and {len(lines) - limit} more")
 
 
+def _backend_record(opts: RunOptions) -> dict:
+    """The manifest's ``backend`` as this session asks for it (``_iterate`` adds ``ran_as`` and Dask's facts)."""
+    return {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
+            "kernels": opts.kernels}  # fmt: skip
+
+
 def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: str) -> tuple[dict, int]:
     """Create ``out`` complete (config, manifest, chunks/) or not at all, locked; return manifest and lock."""
     manifest = store.base_manifest(opts.command)
@@ -487,7 +493,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
         filters=[f.label for f in scn.filters], state_dim=n_state(feature_count(scn)),
         timeseries=opts.timeseries, code_version=code, start=store.now_iso(),
-        end=None, published=None, chunks=[],
+        end=None, published=None, backend=_backend_record(opts), chunks=[],
     )  # fmt: skip
 
     def populate(d: Path) -> None:
@@ -498,14 +504,15 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     return manifest, runlock.create_locked(out, opts.overwrite, populate, "spmc run")
 
 
-def _resume_kernels(opts: RunOptions, manifest: dict) -> RunOptions:
-    """A resumed run keeps the kernels it was started with unless ``--kernels`` says otherwise (then a note)."""
+def _resume_kernels(out: Path, opts: RunOptions, manifest: dict) -> RunOptions:
+    """A resumed run keeps the kernels its chunks ran with (recorded before the first chunk); asking for
+    others is refused: the two agree to round-off, not bit for bit (docs/performance.md)."""
     rec = _recorded_kernels(manifest)
     if opts.kernels is None:
         return dataclasses.replace(opts, kernels=rec)
     if opts.kernels != rec:
-        _say(opts, [f"this run's chunks so far used --kernels {rec}; the rest use --kernels {opts.kernels}: the two "
-                    "agree to round-off, not bit for bit (docs/performance.md)"])  # fmt: skip
+        raise RunError(f"{out}: this run's chunks run with --kernels {rec}; --kernels {opts.kernels} would mix "
+                       "results that agree to round-off only (drop --kernels, or start a new run)")  # fmt: skip
     return opts
 
 
@@ -566,7 +573,7 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
     try:
         if opts.resume:
             manifest = _read_manifest(out)  # as the last writer left it, now that we hold the lock
-            opts = _resume_kernels(opts, manifest)
+            opts = _resume_kernels(out, opts, manifest)
             recorded = int(manifest["trials"])
             scn = _resume_checks(scn, out, opts, manifest, shash)
             manifest["code_version"] = code
@@ -598,8 +605,8 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     n_div = {f: v.diverged().get(f, 0) for f in spec.filters}
     ticker = Ticker(progress, int(done.size), scn.trials, (spec.steps - 1) * len(spec.filters), n_div)
     ticker.report()
-    manifest["backend"] = {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
-                           "kernels": opts.kernels}  # fmt: skip
+    manifest["backend"] = _backend_record(opts)
+    store.write_json(out / "manifest.json", manifest)  # kernels and backend before the first chunk
     if opts.kernels == "compiled" and chunks:
         _say(opts, compile_note())
     with ticker:

@@ -33,6 +33,7 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         raise RerunError(bad[0])
     try:
         scn = engine.load_run_scenario(run_dir)
+        kernels = engine.recorded_kernels(run_dir)
     except (engine.RunError, ValueError) as exc:
         raise RerunError(str(exc)) from None
     if out is not None and Path(out).is_dir():
@@ -44,10 +45,6 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
             raise RerunError(f"--out {out}: {exc.strerror}") from None
     if trial >= scn.trials:
         raise RerunError(f"{run_dir}: trial {trial} is out of range (the run has {scn.trials} trials, 0-{scn.trials - 1})")
-    try:  # the run's own kernels: the two paths agree to round-off, not bit for bit
-        kernels = engine.recorded_kernels(run_dir)
-    except engine.RunError as exc:
-        raise RerunError(str(exc)) from None
     co = engine.compute_chunk(scn.model_dump_json(), np.array([trial]), "full", kernels)
     recomputed = co.trials_table.to_pandas()
     lines = [f"{scn.name}: trial {trial} (root seed {scn.seed}, SeedSequence spawn key ({trial},))"]

@@ -145,3 +145,39 @@ def test_mixed_tables_are_refused(run6, tmp_path):
     one_error_line(spmc("rerun", d, "--trial", 0), "timeseries.parquet is missing")
     run_ok("run", "--resume", d)
     assert _published_bytes(d) == _published_bytes(run6)
+
+
+# 4. the manifest records kernels and backend before the first chunk; resume keeps them, a change is refused
+def test_kernels_recorded_before_the_first_chunk(quick_scenario, tmp_path, monkeypatch):
+    from stereopose_mc import api
+    from stereopose_mc.mc import engine
+
+    d = tmp_path / "run"
+    seen = []
+
+    def killed(scenario_json, trials, timeseries, kernels="numpy"):
+        seen.append(kernels)
+        raise KeyboardInterrupt("killed before the first chunk finished")
+
+    monkeypatch.setattr(engine, "compute_chunk", killed)
+    with pytest.raises(KeyboardInterrupt):
+        api.run(quick_scenario, out=d, trials=2, kernels="compiled")
+    assert json.loads((d / "manifest.json").read_text())["backend"]["kernels"] == "compiled"
+    with pytest.raises(KeyboardInterrupt):
+        api.resume(d)  # no --kernels: the run's own
+    assert seen == ["compiled", "compiled"]
+    monkeypatch.undo()
+    before = (d / "manifest.json").read_bytes()
+    one_error_line(spmc("run", "--resume", d, "--kernels", "numpy", "--quiet"), "--kernels compiled",
+                   "--kernels numpy", "start a new run")  # fmt: skip
+    assert (d / "manifest.json").read_bytes() == before
+
+
+def test_resume_of_a_numpy_run_refuses_compiled(run6, tmp_path):
+    import shutil
+
+    d = tmp_path / "run"
+    shutil.copytree(run6, d)
+    before = (d / "manifest.json").read_bytes()
+    one_error_line(spmc("run", "--resume", d, "--kernels", "compiled", "--quiet"), "--kernels numpy")
+    assert (d / "manifest.json").read_bytes() == before
