@@ -89,7 +89,8 @@ def summarize(trials: pd.DataFrame, label: str, state_dim: int, window_steps: in
         med[k] = float(np.median(v)) if v.size else float("nan")
     r = g["nis_ratio_mean"].to_numpy(float) if "nis_ratio_mean" in g else np.array([])
     r = r[np.isfinite(r)]
-    m = float(np.nanmean(g["nis_dof_mean"])) if "nis_dof_mean" in g and len(g) else 1.0
+    dm = g["nis_dof_mean"].to_numpy(float) if "nis_dof_mean" in g else np.array([])
+    m = float(dm[np.isfinite(dm)].mean()) if np.isfinite(dm).any() else (float("nan") if dm.size else 1.0)
     return Consistency(label, len(g), med, dof, float(np.median(r)) if r.size else float("nan"),
                        nis_band(m, window_steps))  # fmt: skip
 

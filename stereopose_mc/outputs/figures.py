@@ -205,6 +205,16 @@ def live_trials(ax, t: np.ndarray, A: np.ndarray) -> None:
     tw.tick_params(axis="y", labelsize=7, colors="grey")
 
 
+def log_y(ax, *values: np.ndarray) -> None:
+    """Log y when any plotted value is finite and positive; else a linear axis with a note (every
+    trial non-finite, e.g. diverged at the first step: a log axis cannot be drawn)."""
+    if any(np.any(np.isfinite(v) & (v > 0)) for v in map(np.asarray, values) if v.size):
+        ax.set_yscale("log")
+        return
+    ax.text(0.5, 0.5, "no finite positive value to plot", ha="center", va="center", transform=ax.transAxes,
+            fontsize=8, color="#b22222")  # fmt: skip
+
+
 def error_vs_time_figure(ts: pd.DataFrame, label: str, window_start: float | None) -> Figure:
     """Median and central 70 % / 90 % bands over the live trials of each error vs time (log y), and their count."""
     g = ts[ts["filter"] == label]
@@ -223,7 +233,7 @@ def error_vs_time_figure(ts: pd.DataFrame, label: str, window_start: float | Non
         ax.plot(t, time_percentiles(A, [50])[0], color="#08519c", lw=1.5, label="median")
         if window_start is not None:
             ax.axvline(window_start, color="grey", ls=":", lw=1)
-        ax.set_yscale("log")
+        log_y(ax, A)
         ax.set_xlabel("t [s]")
         ax.set_ylabel(ERROR_LABELS[name])
     axes[0].legend(fontsize=8)
@@ -360,7 +370,7 @@ def consistency_figure(c: Consistency, label: str, what: str, dof_text: str) -> 
         if v.size:
             ax.set_ylim(0.5 * np.min(v), 2.0 * np.max(v))
     ax.plot(c.t[ok], c.dof[ok], color="k", ls=":", lw=1, label=f"expected ({dof_text})")
-    ax.set_yscale("log")
+    log_y(ax, c.mean, c.lo[ok], c.hi[ok], c.dof[ok], *(() if c.quantiles is None else c.quantiles))
     _clip_y(ax, c)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(what)

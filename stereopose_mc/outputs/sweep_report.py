@@ -53,7 +53,7 @@ def sweep_figure(summary: pd.DataFrame, spec: dict, label: str, x_axis: int = 0)
         axs[6].plot(x[order], 100 * sub["divergence_rate"].to_numpy(float)[order], marker="o", label=lab)
     for ax, name in zip(axs, ERROR_NAMES):
         ax.set_ylabel(ERROR_LABELS[name])
-        ax.set_yscale("log")
+        figs.log_y(ax, *(np.asarray(line.get_ydata(), float) for line in ax.lines))
     axs[6].set_ylabel("diverged [%]")
     for ax in axs[:7]:
         ax.set_xlabel(x_path, fontsize=8)

@@ -181,3 +181,21 @@ def test_resume_of_a_numpy_run_refuses_compiled(run6, tmp_path):
     before = (d / "manifest.json").read_bytes()
     one_error_line(spmc("run", "--resume", d, "--kernels", "compiled", "--quiet"), "--kernels numpy")
     assert (d / "manifest.json").read_bytes() == before
+
+
+# 7. a report over data that are all non-finite (every trial of a filter diverged at step 1) draws, never crashes
+def test_report_on_all_non_finite_data(run6, tmp_path):
+    import numpy as np
+    import pandas as pd
+
+    from outputs.output_helpers import copy_run  # a hand-edited run: no publication record
+
+    d = copy_run(run6, tmp_path / "run")
+    for name in ("timeseries.parquet", "trials.parquet"):
+        t = pd.read_parquet(d / name)
+        num = [c for c in t.columns if t[c].dtype.kind == "f" and c != "t"]
+        t.loc[t["filter"] == "ekf", num] = np.nan
+        t.to_parquet(d / name)
+    r = spmc("report", d)
+    assert r.exit_code == 0, r.output
+    assert (d / "figures" / "time-ekf.png").is_file() and (d / "figures" / "nees-ekf.png").is_file()
