@@ -66,8 +66,8 @@ class Run:
         """An existing run directory; :class:`SpmcError` if ``path`` is not one."""
         path = Path(path)
         try:
-            m = json.loads((path / "manifest.json").read_text())
-        except (OSError, json.JSONDecodeError):
+            m = json.loads((path / "manifest.json").read_bytes())
+        except (OSError, ValueError):  # not JSON, not UTF-8
             raise SpmcError(f"{path}: not a run directory (no readable manifest.json)") from None
         if not isinstance(m, dict) or m.get("kind") != "run":
             raise SpmcError(f"{path}: not a run directory made by 'spmc run'")

@@ -490,11 +490,23 @@ def load_scenario_text(text: str, file: str = "<string>", overrides: dict[str, A
     return scenario
 
 
+MAX_SCENARIO_BYTES = 4 << 20  # a scenario (or sweep) file is a few kB; meshes live in their own files
+
+
+def read_limited(path: Path, limit: int = MAX_SCENARIO_BYTES) -> bytes:
+    """The bytes of ``path``, at most ``limit`` (``/dev/zero`` or a huge file: ``ValueError``, nothing more read)."""
+    with open(path, "rb") as fh:
+        raw = fh.read(limit + 1)
+    if len(raw) > limit:
+        raise ValueError(f"larger than {limit >> 20} MiB: not a scenario file")
+    return raw
+
+
 def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
-    """Load and validate a scenario YAML file."""
+    """Load and validate a scenario YAML file (at most ``MAX_SCENARIO_BYTES``)."""
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        raw = read_limited(path)
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         line = raw.count(b"\n", 0, exc.start) + 1
@@ -508,4 +520,6 @@ def load_scenario(path: str | Path, overrides: dict[str, Any] | None = None) -> 
         raise ScenarioError([Problem(str(path), None, "", "is a directory, not a scenario file")]) from None
     except OSError as exc:
         raise ScenarioError([Problem(str(path), None, "", f"cannot read: {exc.strerror or exc}")]) from None
+    except ValueError as exc:
+        raise ScenarioError([Problem(str(path), None, "", str(exc))]) from None
     return load_scenario_text(text, str(path), overrides)

@@ -641,15 +641,27 @@ def compile_note() -> list[str]:
 
 
 def _read_manifest(out: Path) -> dict:
+    """A run directory's manifest; :class:`RunError` in one line naming the file for anything unreadable."""
     p = out / "manifest.json"
     if not p.is_file():
         raise RunError(f"{out}: not a run directory (no manifest.json); nothing to resume")
     try:
-        m = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
+        m = json.loads(p.read_bytes())
+    except (OSError, ValueError) as exc:  # ValueError: not JSON, not UTF-8
         raise RunError(f"{p}: unreadable manifest ({exc})") from None
+    if not isinstance(m, dict):
+        raise RunError(f"{p}: not a run's manifest (not a JSON object)")
     if m.get("kind") != "run":
         raise RunError(f"{out}: not a run directory made by 'spmc run'")
+    checks = {"trials": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+              "seed": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+              "timeseries": lambda v: v in TIMESERIES_MODES, "scenario_hash": lambda v: isinstance(v, str),
+              "backend": lambda v: v is None or isinstance(v, dict), "chunks": lambda v: isinstance(v, list)}  # fmt: skip
+    for key, ok in checks.items():
+        if key in m and not ok(m[key]):
+            raise RunError(f"{p}: {key}: {json.dumps(m[key])[:60]} is not valid (a damaged manifest)")
+    if not isinstance(m.get("trials"), int):
+        raise RunError(f"{p}: trials: missing (a damaged manifest)")
     return m
 
 
@@ -668,9 +680,14 @@ def _recorded_kernels(manifest: dict) -> str:
 
 
 def load_run_scenario(out: Path) -> Scenario:
-    """The resolved scenario stored in a run directory."""
+    """The resolved scenario stored in a run directory (:class:`RunError` in one line naming the file)."""
+    from ..config.loader import ScenarioError, load_scenario
+
     p = out / "config.yaml"
     if not p.is_file():
         raise RunError(f"{out}: no config.yaml")
-    return Scenario.model_validate(yaml.safe_load(p.read_text()))
-
+    try:
+        return load_scenario(p)
+    except ScenarioError as exc:
+        more = f" (and {len(exc.problems) - 1} more)" if len(exc.problems) > 1 else ""
+        raise RunError(f"{exc.problems[0]}{more}") from None

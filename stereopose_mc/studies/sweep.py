@@ -23,7 +23,7 @@ from typing import Any, Callable, ContextManager
 import pandas as pd
 import yaml
 
-from ..config.loader import ScenarioError, load_scenario_text
+from ..config.loader import ScenarioError, load_scenario_text, read_limited
 from ..config.schema import Scenario
 from ..mc import engine
 from ..rundir import publish, store
@@ -151,9 +151,11 @@ def build_points(scenario_file: Path, sets: list[str], zipped: bool, trials: int
     if len({a.path for a in axes}) != len(axes):
         raise SweepError("each PATH may be swept by one --set only")
     try:
-        text = Path(scenario_file).read_text(encoding="utf-8")
+        text = read_limited(Path(scenario_file)).decode("utf-8")
     except OSError as exc:
         raise SweepError(f"{scenario_file}: cannot read ({exc.strerror or exc})") from None
+    except ValueError as exc:  # too large, or not UTF-8
+        raise SweepError(f"{scenario_file}: {exc}") from None
     load_scenario_text(text, str(scenario_file))  # the base scenario itself (file:line errors)
     base = yaml.safe_load(text)
     points, problems = [], []
@@ -288,8 +290,8 @@ def summary(out: Path, quantiles: tuple[float, ...] = (10.0, 50.0, 90.0)) -> pd.
 def is_sweep_file(path: Path) -> bool:
     """A YAML file whose top level has a ``sweep`` mapping (rather than a scenario)."""
     try:
-        d = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        d = yaml.safe_load(read_limited(Path(path)).decode("utf-8"))
+    except (OSError, ValueError, yaml.YAMLError):  # ValueError: too large, or not UTF-8
         return False
     return isinstance(d, dict) and isinstance(d.get("sweep"), dict)
 
@@ -300,7 +302,7 @@ def load_sweep_file(path: Path) -> tuple[Path, list[str], bool, int | None]:
     ``scenario`` is relative to the sweep file.
     """
     path = Path(path)
-    d = yaml.safe_load(path.read_text(encoding="utf-8"))["sweep"]
+    d = yaml.safe_load(read_limited(path).decode("utf-8"))["sweep"]
     unknown = sorted(set(d) - {"scenario", "set", "zip", "trials"})
     if unknown:
         raise SweepError(f"{path}: sweep.{unknown[0]}: unknown key (expected scenario, set, zip, trials)")

@@ -199,3 +199,46 @@ def test_report_on_all_non_finite_data(run6, tmp_path):
     r = spmc("report", d)
     assert r.exit_code == 0, r.output
     assert (d / "figures" / "time-ekf.png").is_file() and (d / "figures" / "nees-ekf.png").is_file()
+
+
+# 9. corrupt run-directory files: one line naming the file
+def _damaged(run6, tmp_path, name: str, edit) -> Path:
+    import shutil
+
+    d = tmp_path / "run"
+    shutil.copytree(run6, d)
+    p = d / name
+    edit(p)
+    return d
+
+
+CORRUPT = {
+    "yaml-syntax": ("config.yaml", lambda p: p.write_text(p.read_text() + "name: [\n"), "config.yaml"),
+    "unknown-key": ("config.yaml", lambda p: p.write_text(p.read_text() + "colour: blue\n"), "colour"),
+    "not-utf8": ("config.yaml", lambda p: p.write_bytes(p.read_bytes() + b"\xff\xfe\n"), "config.yaml"),
+    "manifest-null": ("manifest.json", lambda p: p.write_text("null"), "manifest.json"),
+    "trials-eight": ("manifest.json",
+                     lambda p: p.write_text(json.dumps({**json.loads(p.read_text()), "trials": "eight"})), "trials"),
+    "manifest-binary": ("manifest.json", lambda p: p.write_bytes(b"\xff{"), "manifest.json"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CORRUPT))
+@pytest.mark.parametrize("command", ["rerun", "resume"])
+def test_corrupt_run_directory_files(case, command, run6, tmp_path):
+    name, edit, needle = CORRUPT[case]
+    d = _damaged(run6, tmp_path, name, edit)
+    before = {p: p.read_bytes() for p in d.rglob("*") if p.is_file() and p.name != ".lock"}
+    args = ("rerun", d, "--trial", 0) if command == "rerun" else ("run", "--resume", d, "--quiet", "--no-report")
+    line = one_error_line(spmc(*args), needle)
+    assert str(d) in line or name in line
+    after = {p: p.read_bytes() for p in d.rglob("*") if p.is_file() and p.name != ".lock"}
+    assert after == before
+
+
+# 11. a size limit on scenario files
+def test_validate_reads_a_bounded_amount(tmp_path):
+    big = tmp_path / "big.yaml"
+    big.write_text("# " + "x" * (5 << 20) + "\n")
+    one_error_line(spmc("validate", big), str(big), "larger than 4 MiB")
+    one_error_line(spmc("validate", "/dev/zero"), "/dev/zero", "larger than 4 MiB")
