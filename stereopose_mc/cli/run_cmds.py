@@ -15,7 +15,7 @@ from .app import CHUNK_HELP, JOBS_HELP, KERNELS_HELP, app, fail, load_or_exit
 def run(
     scenario: Optional[Path] = typer.Argument(None, help="scenario YAML file (omit with --resume)"),
     trials: Optional[int] = typer.Option(None, "--trials", min=1, help="number of trials (default: the scenario's)"),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="root seed (default: the scenario's)"),
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1, help=JOBS_HELP),
     chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help=CHUNK_HELP),

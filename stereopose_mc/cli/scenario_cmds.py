@@ -60,7 +60,7 @@ def simulate(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Optional[Path] = typer.Option(None, "--out", help="output directory (default runs/<name>-sim)"),
     no_noise: bool = typer.Option(False, "--no-noise", help="write the exact measurements"),
-    seed: Optional[int] = typer.Option(None, "--seed", min=0, help="root seed (default: the scenario's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="root seed (default: the scenario's)"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output directory"),
     trial: Optional[int] = typer.Option(None, "--trial", min=0, help="trial j's truth (dispersed) and noise"),
 ) -> None:

@@ -7,6 +7,7 @@ Units follow the key names: ``_km``, ``_m``, ``_deg``, ``_degps`` (deg/s), ``_m2
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal, Union
 
 import numpy as np
@@ -18,6 +19,17 @@ from .filters import (EKFConfig, FilterConfig, FilterMeasurementNoise, GatingCon
                       ProcessNoiseConfig, UKFConfig)  # noqa: F401 (the scenario's filter entries: config/filters.py)
 
 SCHEMA_VERSION = 1
+
+# Physical ranges: a value outside them is no scenario of this tool, and would make a run crash
+# or integrate for hours (issue 34, item 8). Each is far outside every use (the thesis: a = 7078 km,
+# |rho| = 40 m, |omega| < 10 deg/s).
+MAX_A_KM = 1.0e6  # beyond the Earth's sphere of influence (~0.93e6 km)
+MAX_RANGE_M = 1.0e5  # relative position: a stereo camera does not see features 100 km away
+MAX_SPEED_MPS = 1.0e3  # relative velocity
+MAX_RATE_DEGPS = 360.0  # one revolution per second
+MAX_SEED = 2**63 - 1  # the seed is an int64 column of the tables
+MAX_DENSITY_KGPM3 = 1.225  # the sea-level density
+MIN_SCALE_HEIGHT_KM = 1.0  # the Earth's atmosphere: 6-70 km
 
 
 
@@ -46,7 +58,7 @@ class TimeConfig(_Model):
 
 
 class OrbitConfig(_Model):
-    a_km: Pos
+    a_km: Annotated[float, Field(gt=0, le=MAX_A_KM)]
     e: Annotated[float, Field(ge=0, lt=1)]
     i_deg: float = 0.0
     raan_deg: float = 0.0
@@ -133,6 +145,16 @@ class InitialStateConfig(_Model):
     q: Annotated[list[float], Field(min_length=4, max_length=4)] = Field(
         description="scalar first, target -> leader (LVLH); normalized on load"
     )
+
+    @field_validator("rho_m", "rho_dot_mps", "omega_degps")
+    @classmethod
+    def _in_range(cls, v, info):
+        limit, unit = {"rho_m": (MAX_RANGE_M, "m"), "rho_dot_mps": (MAX_SPEED_MPS, "m/s"),
+                       "omega_degps": (MAX_RATE_DEGPS, "deg/s")}[info.field_name]  # fmt: skip
+        size = math.hypot(*v)  # no overflow warning for 1e308
+        if size > limit:
+            raise ValueError(f"magnitude {size:.3g} {unit} is beyond {limit:g} {unit}")
+        return v
 
     @field_validator("q")
     @classmethod
@@ -341,9 +363,10 @@ class DragConfig(_Model):
     density_model: Literal["exponential"] = "exponential"
     ballistic_coefficient_leader_kgpm2: Pos = Field(description="m / (C_D A) of the leader")
     ballistic_coefficient_target_kgpm2: Pos = Field(description="m / (C_D A) of the target")
-    reference_density_kgpm3: Pos = Field(default=3.614e-14, description="density at reference_altitude_km")
-    reference_altitude_km: NonNeg = 700.0
-    scale_height_km: Pos = 88.667
+    reference_density_kgpm3: Annotated[float, Field(gt=0, le=MAX_DENSITY_KGPM3)] = Field(
+        default=3.614e-14, description="density at reference_altitude_km")
+    reference_altitude_km: Annotated[float, Field(ge=0, le=MAX_A_KM)] = 700.0
+    scale_height_km: Annotated[float, Field(ge=MIN_SCALE_HEIGHT_KM, le=MAX_A_KM)] = 88.667
 
 
 class TruthModelConfig(_Model):
@@ -395,7 +418,7 @@ class DispersionSpec(_Model):
     high: Param | None = None
     sigma: Param | None = None
     median: Param = 1.0
-    values: list[Param] | None = None
+    values: Annotated[list[Param], Field(min_length=1)] | None = None
     weights: list[NonNeg] | None = None
     magnitude: MagnitudeSpec | Pos | None = None
 
@@ -433,7 +456,7 @@ class DispersionsConfig(BaseModel):
 class Scenario(_Model):
     name: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_.\-]+$")]
     description: str = ""
-    seed: Annotated[int, Field(ge=0)]
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)]
     trials: Annotated[int, Field(ge=1)] = 100
     time: TimeConfig = TimeConfig()
     leader: LeaderConfig

@@ -59,6 +59,8 @@ class Perturbations:
     gravity_gradient: bool = False
 
 
+MAX_EVALUATIONS = 1_000_000  # right-hand sides per truth integration (a normal one needs < 1e5)
+
 def accel_j2(r: Array) -> Array:
     """J2 acceleration ``(..., 3)`` at positions ``r (..., 3)`` (m/s^2)."""
     r2 = np.sum(r * r, axis=-1, keepdims=True)
@@ -144,7 +146,12 @@ def propagate(y0: Array, t: Array, J: Array, p: Perturbations, rtol: float = 1e-
                            np.full(4, 1e-14), np.full(3, 1e-15)])  # fmt: skip
     atol = np.tile(unit * (rtol / 1e-12), B)
 
+    calls = [0]
+
     def f(_t, yy):
+        calls[0] += 1
+        if calls[0] > MAX_EVALUATIONS:  # a stiff truth (e.g. an absurd drag) would integrate for hours
+            raise RuntimeError(f"perturbed truth integration: more than {MAX_EVALUATIONS} evaluations")
         return rhs(yy.reshape(B, N_STATE), J, p).reshape(-1)
 
     from scipy.integrate import solve_ivp  # only perturbed truths need it here

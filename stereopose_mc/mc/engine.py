@@ -93,7 +93,11 @@ def prepare(scn: Scenario) -> Prepared:
     the same bits; ``SPMC_NO_CACHE=1`` turns it off).
     """
     setup = setup_of(scn)
-    truth = cached_truth(setup)
+    try:
+        truth = cached_truth(setup)
+    except RuntimeError as exc:  # an integration that hit its limit
+        raise RunError(f"{scn.name}: the true trajectory cannot be integrated ({exc}); check orbit, "
+                       "initial_state and truth_model") from None  # fmt: skip
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
@@ -565,6 +569,8 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
         connect_dask(opts.scheduler, opts.jobs)[0].close()
     shash = scenario_hash(scn)
     code = integrity.code_version()
+    if not dispersed.has_dispersions(scn):
+        _prepared(scn.model_dump_json())  # the shared truth: a scenario that cannot run fails before a file is written
     if opts.resume:
         _read_manifest(out)  # a run directory at all?
         lock = runlock.acquire(out, "spmc run --resume")

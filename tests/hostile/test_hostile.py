@@ -242,3 +242,60 @@ def test_validate_reads_a_bounded_amount(tmp_path):
     big.write_text("# " + "x" * (5 << 20) + "\n")
     one_error_line(spmc("validate", big), str(big), "larger than 4 MiB")
     one_error_line(spmc("validate", "/dev/zero"), "/dev/zero", "larger than 4 MiB")
+
+
+# 8. schema bounds: nothing that passes validate crashes or hangs a run
+def _drag(**kw):
+    return {"drag": {"ballistic_coefficient_leader_kgpm2": 100.0, "ballistic_coefficient_target_kgpm2": 100.0, **kw}}
+
+
+OUT_OF_RANGE = {
+    "a_km": ({"leader": {"orbit": {"a_km": 1.0e300, "e": 0.0}}}, "leader.orbit.a_km"),
+    "rho_m": ({"truth_initial_state": {"rho_m": [10.0, 1.0e308, 10.0]}}, "truth_initial_state.rho_m"),
+    "omega": ({"truth_initial_state": {"omega_degps": [0.0, 1.0e9, 0.0]}}, "truth_initial_state.omega_degps"),
+    "seed": ({"seed": 10**38}, "seed"),
+    "density": ({"truth_model": _drag(reference_density_kgpm3=1.0e30)}, "reference_density_kgpm3"),
+    "scale_height": ({"truth_model": _drag(scale_height_km=1.0e-9)}, "scale_height_km"),
+    "choice": ({"dispersions": {"camera.baseline_m": {"dist": "choice", "values": []}}}, "values"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(OUT_OF_RANGE))
+def test_validate_refuses_values_a_run_cannot_survive(case, tmp_path):
+    from scenarios import scenario_dict
+
+    over, key = OUT_OF_RANGE[case]
+    def merged(a, b):
+        return {**a, **{k: merged(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
+                        for k, v in b.items()}}  # fmt: skip
+
+    d = merged(scenario_dict(trials=1), over)
+    f = tmp_path / "s.yaml"
+    import yaml
+
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    r = spmc("validate", f)
+    assert r.exit_code == 2 and key in r.output and "Traceback" not in r.output, r.output
+    r = spmc("run", f, "--out", tmp_path / "run", "--quiet", "--no-report")
+    assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_seed_option_is_bounded(quick_scenario, tmp_path):
+    r = spmc("run", quick_scenario, "--seed", 2**63, "--out", tmp_path / "run", "--quiet")
+    assert r.exit_code == 2 and "--seed" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_truth_integration_has_a_limit(tmp_path, monkeypatch):
+    from scenarios import write_scenario
+
+    from cli_helpers import SHORT
+    from stereopose_mc.core import perturbed
+
+    monkeypatch.setattr(perturbed, "MAX_EVALUATIONS", 50)
+    monkeypatch.setenv("SPMC_NO_CACHE", "1")
+    f = write_scenario(tmp_path / "s.yaml", trials=1, time=SHORT, truth_model=_drag())
+    one_error_line(spmc("run", f, "--out", tmp_path / "run", "--quiet"), "cannot be integrated",
+                   "more than 50 evaluations")  # fmt: skip
+    assert not (tmp_path / "run").exists()
