@@ -538,6 +538,9 @@ def _resume_checks(scn: Scenario, out: Path, opts: RunOptions, manifest: dict, s
     trials = recorded if opts.trials is None else opts.trials
     if trials < recorded:
         raise RunError(f"{out}: this run has {recorded} trials; --trials {trials} cannot shrink it (start a new run)")
+    if trials > recorded and scn.dispersions is not None and scn.dispersions.sampling == "lhs":
+        raise RunError(f"{out}: a Latin hypercube depends on the trial count: {recorded} trials cannot be extended to "
+                       f"{trials} (start a new run with --trials {trials})")  # fmt: skip
     if trials > recorded:
         _say(opts, [f"{out}: extending the run from {recorded} to {trials} trials (--trials); "
                     f"trials 0-{recorded - 1} are kept"])  # fmt: skip

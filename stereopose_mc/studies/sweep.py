@@ -185,6 +185,15 @@ class SweepResult:
     skipped: list[str] = field(default_factory=list)
 
 
+def _recorded_hash(run_dir: Path) -> str | None:
+    """The scenario hash a point's run directory records (None: no readable run manifest)."""
+    try:
+        m = json.loads((run_dir / "manifest.json").read_bytes())
+    except (OSError, ValueError):
+        return None
+    return m.get("scenario_hash") if isinstance(m, dict) and m.get("kind") == "run" else None
+
+
 def _finished(run_dir: Path) -> bool:
     try:
         m = json.loads((run_dir / "manifest.json").read_text())
@@ -217,6 +226,11 @@ def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = Fa
         spec.update(store.base_manifest(opts.command), start=store.now_iso(), end=None)
         store.write_json(sweep_file, spec)
     res = SweepResult(out, points)
+    for p in points:  # a point run before from another scenario (the scenario file changed): refused up front
+        recorded = _recorded_hash(out / p.name)
+        if recorded is not None and recorded != engine.scenario_hash(p.scenario):
+            raise SweepError(f"{out / p.name}: ran from a different scenario (the scenario file or a --set value "
+                             "changed since); use another --out")  # fmt: skip
     for i, p in enumerate(points):
         d = out / p.name
         if _finished(d):

@@ -299,3 +299,34 @@ def test_truth_integration_has_a_limit(tmp_path, monkeypatch):
     one_error_line(spmc("run", f, "--out", tmp_path / "run", "--quiet"), "cannot be integrated",
                    "more than 50 evaluations")  # fmt: skip
     assert not (tmp_path / "run").exists()
+
+
+# 5. an lhs run cannot be extended to the bytes of a fresh run: refused
+def test_lhs_extension_is_refused(tmp_path):
+    from scenarios import write_scenario
+
+    from cli_helpers import SHORT
+
+    disp = {"sampling": "lhs", "camera.baseline_m": {"dist": "uniform", "low": -0.01, "high": 0.01}}
+    f = write_scenario(tmp_path / "s.yaml", trials=2, time=SHORT, dispersions=disp)
+    d = tmp_path / "run"
+    run_ok("run", f, "--out", d)
+    before = {p: p.read_bytes() for p in d.rglob("*") if p.is_file() and p.name != ".lock"}
+    one_error_line(spmc("run", "--resume", d, "--trials", 4, "--quiet"), "Latin hypercube", "--trials 4")
+    assert {p: p.read_bytes() for p in d.rglob("*") if p.is_file() and p.name != ".lock"} == before
+
+
+# 6. sweep resume checks each point's scenario hash
+def test_sweep_resume_refuses_a_changed_scenario(quick_scenario, tmp_path):
+    import yaml
+
+    f = tmp_path / "s.yaml"
+    f.write_text(quick_scenario.read_text())
+    out = tmp_path / "sweep"
+    args = ("sweep", f, "--set", "camera.baseline_m=1.0,1.5", "--trials", 2, "--out", out, "--quiet", "--no-report")
+    r = spmc(*args)
+    assert r.exit_code == 0, r.output
+    d = yaml.safe_load(f.read_text())
+    d["measurements"]["image_sigma"] = 2.0e-5
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    one_error_line(spmc(*args), "p000", "different scenario", "another --out")
