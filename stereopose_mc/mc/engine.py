@@ -49,7 +49,7 @@ from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
-from . import dispersed, rows
+from . import dispersed, rows, scheduler_probe
 from .progress import PROXY_EVERY_S, StepCounter, Ticker
 from .trial import Bounds, run_chunk
 
@@ -325,6 +325,10 @@ def connect_dask(address: str | None, jobs: int, info: dict | None = None):
         raise RunError("--backend dask needs the optional extra: pip install 'stereopose_mc[dask]'") from None
     cluster = None
     if address:
+        try:
+            scheduler_probe.probe(address, DASK_CONNECT_TIMEOUT_S)  # a service that is not Dask: hang or 3 EiB
+        except scheduler_probe.NotAScheduler as exc:
+            raise RunError(f"--scheduler {address}: {exc}") from None
         try:
             client = Client(address, timeout=DASK_CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:

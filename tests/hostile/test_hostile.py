@@ -330,3 +330,54 @@ def test_sweep_resume_refuses_a_changed_scenario(quick_scenario, tmp_path):
     d["measurements"]["image_sigma"] = 2.0e-5
     f.write_text(yaml.safe_dump(d, sort_keys=False))
     one_error_line(spmc(*args), "p000", "different scenario", "another --out")
+
+
+# 10. --scheduler at a service that is not Dask: one line within the connect timeout
+@pytest.fixture
+def fake_service():
+    import socket
+    import threading
+
+    servers = []
+
+    def start(answer: bytes | None):
+        srv = socket.socket()
+        srv.bind(("127.0.0.1", 0))
+        srv.listen()
+        conns = []
+
+        def serve():
+            try:
+                c, _ = srv.accept()
+            except OSError:
+                return
+            conns.append(c)
+            if answer is not None:
+                c.sendall(answer)
+
+        threading.Thread(target=serve, daemon=True).start()
+        servers.append((srv, conns))
+        return f"tcp://127.0.0.1:{srv.getsockname()[1]}"
+
+    yield start
+    for srv, conns in servers:
+        for c in conns:
+            c.close()
+        srv.close()
+
+
+@pytest.mark.parametrize("answer,needle", [(b"\xff" * 64, "not a Dask scheduler"),
+                                           (b"HTTP/1.1 200 OK\r\n\r\n", "not a Dask scheduler"),
+                                           (None, "no Dask handshake within")])  # fmt: skip
+def test_scheduler_that_is_not_dask(answer, needle, fake_service, quick_scenario, tmp_path, monkeypatch):
+    import time
+
+    from stereopose_mc.mc import engine
+
+    monkeypatch.setattr(engine, "DASK_CONNECT_TIMEOUT_S", 1)
+    address = fake_service(answer)
+    t0 = time.monotonic()
+    r = spmc("run", quick_scenario, "--backend", "dask", "--scheduler", address, "--out", tmp_path / "run", "--quiet")
+    assert time.monotonic() - t0 < 30
+    one_error_line(r, address, needle)
+    assert not (tmp_path / "run").exists()
