@@ -279,11 +279,15 @@ def error_message(err: dict[str, Any], loc: Loc, data: Any) -> tuple[Loc, str]:
         return loc, "unknown key" + (f" (did you mean {close[0]!r}?)" if close else "")
     if kind == "missing":
         return loc, "required key is missing"
-    if kind == "union_tag_invalid":
+    if kind in ("union_tag_invalid", "union_tag_not_found"):
+        # a filter entry, or another tagged mapping (target.shape): named by its key, with its own tags
+        is_filter = "filters" in [k for k in loc if isinstance(k, str)]
+        what = "filter" if is_filter else next((str(k) for k in reversed(loc) if isinstance(k, str)), "entry")
+        expected = tags if is_filter else err.get("ctx", {}).get("expected_tags", tags)
+        if kind == "union_tag_not_found":
+            return loc + ("type",), f"required key is missing: every {what} needs a 'type', one of {expected}"
         tag = err.get("ctx", {}).get("tag", value)
-        return loc + ("type",), f"unknown filter type {tag!r}; expected one of {tags}"
-    if kind == "union_tag_not_found":
-        return loc + ("type",), f"required key is missing: every filter needs a 'type', one of {tags}"
+        return loc + ("type",), f"unknown {what} type {tag!r}; expected one of {expected}"
     if kind == "finite_number":
         return loc, f"must be a finite number (got {_short(value)})"
     if kind == "value_error":

@@ -381,3 +381,12 @@ def test_scheduler_that_is_not_dask(answer, needle, fake_service, quick_scenario
     assert time.monotonic() - t0 < 30
     one_error_line(r, address, needle)
     assert not (tmp_path / "run").exists()
+
+
+# 12. the right words for a wrong shape type
+def test_wrong_shape_type_is_named_as_a_shape(tmp_path):
+    from scenarios import write_scenario
+
+    f = write_scenario(tmp_path / "s.yaml", target={"shape": {"type": "torus"}})
+    line = one_error_line(spmc("validate", f), "target.shape.type", "unknown shape type 'torus'", "'box'", "'mesh'")
+    assert "filter" not in line
