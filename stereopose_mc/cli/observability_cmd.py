@@ -91,6 +91,9 @@ def observability(
         problems.append(f"--omega-degps must be finite (got {list(omega_degps)})")
     if not all(math.isfinite(i) and i > 0 for i in inertia):
         problems.append(f"--inertia must be three positive moments (got {list(inertia)})")
+    elif 2 * max(inertia) > sum(inertia):
+        problems.append(f"--inertia {' '.join(f'{i:g}' for i in inertia)}: the moments violate the triangle "
+                        "inequality (no rigid body has them)")
     if not (math.isfinite(rtol) and 0 < rtol < 1):
         problems.append(f"--rtol must be in (0, 1) (got {rtol})")
     if problems:

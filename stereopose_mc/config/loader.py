@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 import types
 import typing
 from dataclasses import dataclass
@@ -165,11 +166,17 @@ class Locator:
 # ----------------------------------------------------------------- pydantic errors
 
 
+_UNION_MEMBER = re.compile(r"(float|int|str|bool|(list|dict|tuple)\[.*\]|[A-Z]\w*)")  # no scenario key looks so
+
+
 def clean_loc(loc: Loc) -> Loc:
-    """Drop the discriminator tag pydantic inserts after ``filters.K`` (``filters.0.iekf.x`` -> ``filters.0.x``)."""
+    """Drop the discriminator tag pydantic inserts after ``filters.K`` (``filters.0.iekf.x`` -> ``filters.0.x``)
+    and the union members it names (``std.list[float]`` -> ``std``)."""
     out: list[Any] = []
     for i, p in enumerate(loc):
         if i == 2 and loc[0] == "filters" and isinstance(loc[1], int) and p in filter_types():
+            continue
+        if isinstance(p, str) and _UNION_MEMBER.fullmatch(p):
             continue
         out.append(p)
     return tuple(out)
@@ -291,7 +298,16 @@ def error_message(err: dict[str, Any], loc: Loc, data: Any) -> tuple[Loc, str]:
     if kind == "finite_number":
         return loc, f"must be a finite number (got {_short(value)})"
     if kind == "value_error":
-        return loc, msg.removeprefix("Value error, ")
+        msg = msg.removeprefix("Value error, ")
+        if not loc:  # a check across keys: the message's leading key path, where the file has it
+            lead = re.match(r"[a-z_]+(\.[a-z_]+)+", msg)
+            key = tuple(lead.group(0).split(".")) if lead else ()
+            while key and _get(data, *key) is None:
+                key = key[:-1]
+            if key and lead and key == tuple(lead.group(0).split(".")):
+                msg = msg[lead.end():].lstrip()  # the key is the location: "measurements.occlusion: needs ..."
+            return key, msg
+        return loc, msg
     if kind in ("model_type", "model_attributes_type", "dict_type"):
         return loc, f"must be a mapping of keys to values (got {_short(value)})"
     if isinstance(value, (dict, list)):
@@ -456,6 +472,7 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
             loc, msg = error_message(err, clean_loc(tuple(err["loc"])), data)
             if path_str(loc) in flagged:
                 continue
+            flagged.add(path_str(loc))  # a union's members fail together: the first says it
             problems.append(Problem(file, where.line(loc), path_str(loc), msg))
     problems += [Problem(file, where.line(loc), path_str(loc), msg) for loc, msg in _semantic_checks(data)]
     if scenario is not None and scenario.target.shape is not None and scenario.target.shape.type == "mesh":

@@ -481,10 +481,13 @@ class Scenario(_Model):
     @model_validator(mode="after")
     def _pixel_noise_needs_pixels(self):
         m = self.measurements
+        # each message starts with the key that is set: the loader reports that key's line
         if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
-            raise ValueError("measurements.image_sigma_px / flow_sigma_pxps need camera.resolution_px")
+            key = "image_sigma_px" if m.image_sigma_px is not None else "flow_sigma_pxps"
+            raise ValueError(f"measurements.{key} needs camera.resolution_px (a pixel camera)")
         if self.target.shape is None and (m.occlusion or m.illumination is not None):
-            raise ValueError("measurements.occlusion / illumination need target.shape")
+            key = "occlusion" if m.occlusion else "illumination"
+            raise ValueError(f"measurements.{key} needs target.shape")
         if self.camera.resolution_px is None:
             for f in self.filters:
                 r = f.measurement_noise

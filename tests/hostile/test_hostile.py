@@ -390,3 +390,31 @@ def test_wrong_shape_type_is_named_as_a_shape(tmp_path):
     f = write_scenario(tmp_path / "s.yaml", target={"shape": {"type": "torus"}})
     line = one_error_line(spmc("validate", f), "target.shape.type", "unknown shape type 'torus'", "'box'", "'mesh'")
     assert "filter" not in line
+
+
+# 13. minor: one line for a NaN in a union-typed value, the key's own line, an impossible inertia
+def test_nan_std_is_one_line(tmp_path):
+    from scenarios import write_scenario
+
+    f = write_scenario(tmp_path / "s.yaml", dispersions={"camera.baseline_m": {"dist": "normal", "std": float("nan")}})
+    line = one_error_line(spmc("validate", f), "dispersions.camera.baseline_m.std:", "finite number")
+    assert "list[" not in line
+
+
+@pytest.mark.parametrize("key,value", [("occlusion", True), ("illumination", {"sun_direction_lvlh": [1.0, 0.0, 0.0]}),
+                                       ("image_sigma_px", 0.3)])  # fmt: skip
+def test_cross_key_errors_name_the_keys_line(key, value, tmp_path):
+    import yaml
+
+    from scenarios import scenario_dict
+
+    d = scenario_dict()
+    d["measurements"][key] = value
+    f = tmp_path / "s.yaml"
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    line_no = next(i for i, t in enumerate(f.read_text().splitlines(), 1) if t.strip().startswith(f"{key}:"))
+    one_error_line(spmc("validate", f), f"s.yaml:{line_no}: measurements.{key}: needs")
+
+
+def test_observability_refuses_an_impossible_inertia():
+    one_error_line(spmc("observability", "--inertia", 1, 1, 3), "--inertia 1 1 3", "triangle inequality")

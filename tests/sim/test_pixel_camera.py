@@ -68,7 +68,7 @@ def test_features_outside_a_narrow_field_of_view_are_not_measured():
 @pytest.mark.parametrize("bad, msg", [
     ({"camera": {"resolution_px": [100, 100]}}, "exactly one of fov_deg or focal_length_px"),
     ({"camera": {"fov_deg": 40.0}}, "need resolution_px"),
-    ({"measurements": {"image_sigma_px": 0.3}}, "need camera.resolution_px"),
+    ({"measurements": {"image_sigma_px": 0.3}}, "needs camera.resolution_px"),
 ])  # fmt: skip
 def test_pixel_options_validate(bad, msg):
     d = scenario_dict(time=SHORT)
