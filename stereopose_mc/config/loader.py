@@ -377,6 +377,29 @@ def _points_behind(data: Any) -> list[tuple[Loc, str]]:
     return out
 
 
+def _points_inside(data: Any) -> list[tuple[Loc, str]]:
+    """With occlusion, a feature point strictly inside a box or ellipsoid target is never visible (the body
+    blocks every ray to it): an impossible feature. (A mesh's interior needs the file: not checked here.)"""
+    shape, points = _get(data, "target", "shape"), _get(data, "target", "feature_points_m")
+    if _get(data, "measurements", "occlusion") is not True or not isinstance(shape, dict) or not isinstance(points, list):
+        return []
+    size = _ok(_VEC3, shape.get("size_m") if shape.get("type") == "box" else shape.get("semi_axes_m"))
+    if shape.get("type") not in ("box", "ellipsoid") or size is None or not all(v > 0 for v in size):
+        return []
+    a = np.asarray(size, float) / (2.0 if shape["type"] == "box" else 1.0)  # half edges or semi-axes
+    out = []
+    for i, p in enumerate(points):
+        pv = _ok(_VEC3, p)
+        if pv is None or not np.all(np.isfinite(pv)):
+            continue
+        u = np.abs(np.asarray(pv, float)) / a
+        depth = 1.0 - (u.max() if shape["type"] == "box" else float(np.sqrt(np.sum(u**2))))
+        if depth > 1e-6:  # inside by more than round-off: a point on the surface is fine
+            out.append((("target", "feature_points_m", i), f"feature point {i} {list(pv)} lies inside the target's "
+                        f"{shape['type']} (target.shape): with measurements.occlusion it is never visible"))  # fmt: skip
+    return out
+
+
 def _filter_R_positive(data: Any) -> list[tuple[Loc, str]]:
     """A filter whose R would default to a zero truth noise (a singular innovation covariance)."""
     sig = {k: _truth_sigma(data, k) for k in ("image_sigma", "flow_sigma")}
@@ -441,7 +464,7 @@ def _semantic_checks(data: Any) -> list[tuple[Loc, str]]:
         return []
     from .dispersions import check as dispersion_checks
 
-    return (_points_behind(data) + _filter_R_positive(data) + _duplicate_points(data) + _fits_in_memory(data)
+    return (_points_behind(data) + _points_inside(data) + _filter_R_positive(data) + _duplicate_points(data) + _fits_in_memory(data)
             + dispersion_checks(data))
 
 

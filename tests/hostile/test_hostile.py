@@ -418,3 +418,25 @@ def test_cross_key_errors_name_the_keys_line(key, value, tmp_path):
 
 def test_observability_refuses_an_impossible_inertia():
     one_error_line(spmc("observability", "--inertia", 1, 1, 3), "--inertia 1 1 3", "triangle inequality")
+
+
+# 14. nonsense: a feature point inside an occluding box is never measured; refused
+@pytest.mark.parametrize("shape,inside", [({"type": "box", "size_m": [4.0, 4.0, 4.0]}, True),
+                                          ({"type": "ellipsoid", "semi_axes_m": [3.0, 3.0, 3.0]}, True),
+                                          ({"type": "box", "size_m": [1.0, 1.0, 1.0]}, False)])  # fmt: skip
+def test_feature_inside_an_occluding_body(shape, inside, tmp_path):
+    import yaml
+
+    from scenarios import scenario_dict
+
+    d = scenario_dict()
+    d["target"]["shape"] = shape
+    d["measurements"]["occlusion"] = True
+    f = tmp_path / "s.yaml"
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    r = spmc("validate", f)
+    if inside:  # case B's points are within 1.5 m of the centre
+        assert r.exit_code == 2 and "lies inside the target's" in r.output and "never visible" in r.output, r.output
+        assert all(line.startswith("error: ") for line in r.output.strip().splitlines())
+    else:
+        assert r.exit_code == 0, r.output
