@@ -440,3 +440,28 @@ def test_feature_inside_an_occluding_body(shape, inside, tmp_path):
         assert all(line.startswith("error: ") for line in r.output.strip().splitlines())
     else:
         assert r.exit_code == 0, r.output
+
+
+def test_exit_ignores_a_late_ctrl_c(monkeypatch):
+    import signal
+
+    from stereopose_mc.cli import main
+
+    class Exited(Exception):
+        pass
+
+    seen = {}
+
+    def fake_exit(code):
+        seen["code"], seen["sigint"] = code, signal.getsignal(signal.SIGINT)
+        raise Exited
+
+    before = signal.getsignal(signal.SIGINT)
+    monkeypatch.setattr(main.os, "_exit", fake_exit)
+    monkeypatch.setattr(main.atexit, "_run_exitfuncs", lambda: None)
+    try:
+        with pytest.raises(Exited):
+            main.exit_now(0)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert seen == {"code": 0, "sigint": signal.SIG_IGN}
