@@ -65,4 +65,5 @@ def probe(address: str, timeout: float) -> None:
     except socket.timeout:
         raise NotAScheduler(f"no Dask handshake within {timeout:g} s") from None
     except OSError as exc:
-        raise NotAScheduler(f"cannot connect ({exc.strerror or exc})") from None
+        raise NotAScheduler(f"cannot connect to a Dask scheduler there within {timeout:g} s "
+                            f"({type(exc).__name__}: {exc.strerror or exc})") from None  # fmt: skip
