@@ -379,7 +379,7 @@ def _points_behind(data: Any) -> list[tuple[Loc, str]]:
 
 def _points_inside(data: Any) -> list[tuple[Loc, str]]:
     """With occlusion, a feature point strictly inside a box or ellipsoid target is never visible (the body
-    blocks every ray to it): an impossible feature. (A mesh's interior needs the file: not checked here.)"""
+    blocks every ray to it): an impossible feature. (A mesh's interior: :func:`_points_inside_mesh`.)"""
     shape, points = _get(data, "target", "shape"), _get(data, "target", "feature_points_m")
     if _get(data, "measurements", "occlusion") is not True or not isinstance(shape, dict) or not isinstance(points, list):
         return []
@@ -503,8 +503,36 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
         if msg:
             loc = ("target", "shape", "file")
             problems.append(Problem(file, where.line(loc), path_str(loc), msg))
+        else:
+            problems += [Problem(file, where.line(loc), path_str(loc), m) for loc, m in _points_inside_mesh(scenario)]
     problems.sort(key=lambda p: p.line or 0)
     return problems, (scenario if not problems else None)
+
+
+# ray directions of the inside test: two generic directions and their opposites (a point on the surface has one
+# ray of each pair leaving the body, so it never counts as inside)
+_PARITY_RAYS = np.array([[0.5773, 0.5775, 0.5771], [-0.2673, 0.5347, 0.8017]])
+
+
+def _points_inside_mesh(scenario: Scenario) -> list[tuple[Loc, str]]:
+    """With occlusion, a feature point strictly inside the closed mesh target is never visible: a point is
+    inside when every ray of :data:`_PARITY_RAYS` (both ways) crosses the surface an odd number of times."""
+    from ..core.shapes import ray_triangles
+    from .meshfiles import read_mesh
+
+    points = scenario.target.feature_points_m
+    if not scenario.measurements.occlusion or not points:
+        return []
+    m = read_mesh(Path(scenario.target.shape.file))
+    tri = np.asarray(m.vertices, float)[np.asarray(m.faces)]
+    p = np.asarray(points, float)
+    inside = np.ones(len(p), bool)
+    for d in np.concatenate([_PARITY_RAYS, -_PARITY_RAYS]):
+        t = ray_triangles(p, np.broadcast_to(d / np.linalg.norm(d), p.shape), tri)
+        inside &= np.sum(t > 1e-9, axis=-1) % 2 == 1
+    return [(("target", "feature_points_m", int(i)), f"feature point {int(i)} {list(points[i])} lies inside the "
+             "target's mesh (target.shape.file): with measurements.occlusion it is never visible")
+            for i in np.flatnonzero(inside)]  # fmt: skip
 
 
 def _mesh_file(scenario: Scenario, file: str) -> tuple[Scenario, str]:

@@ -13,9 +13,11 @@ filter with the median and 90th percentile of each error, linking to each report
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -541,18 +543,40 @@ def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = Non
     """Regenerate ``DIR/figures/`` from the run's tables and write ``DIR/report.html``; return its path.
 
     Raises :class:`ReportError` (listing every missing or unreadable file) for a broken
-    or partial run directory; nothing is written then.
+    or partial run directory; nothing is written then. The figures are drawn into a hidden
+    staging directory and swapped in whole, so an interrupted report leaves the previous
+    ``figures/`` as it was.
     """
     data = load_run(Path(run_dir))
-    fs = figs.build_figures(data.path / "figures", data.trials, data.timeseries, data.timing,
-                            filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
-                            window_start=data.window_start, percentiles=data.percentiles,
-                            progress=progress)  # fmt: skip
-    sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters)
-    fs.figures.extend(sens_figs)
+    final = data.path / "figures"
+    stage = data.path / f".figures-staging-{os.getpid()}"
+    shutil.rmtree(stage, ignore_errors=True)
+    try:
+        fs = figs.build_figures(stage, data.trials, data.timeseries, data.timing,
+                                filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
+                                window_start=data.window_start, percentiles=data.percentiles,
+                                progress=progress)  # fmt: skip
+        sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters, stage)
+        fs.figures.extend(sens_figs)
+        _swap_in(stage, final)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    fs.figures = [dataclasses.replace(f, png=final / Path(f.png).name, svg=final / Path(f.svg).name)
+                  for f in fs.figures]  # fmt: skip
+    fs.tables = [final / Path(t).name for t in fs.tables]
     out = data.path / "report.html"
     store.atomic_write_text(out, render_report(data, fs, sens_html))
     return out
+
+
+def _swap_in(stage: Path, final: Path) -> None:
+    """Replace directory ``final`` by ``stage`` (two renames; the old one is removed afterwards)."""
+    old = final.with_name(f".figures-old-{os.getpid()}")
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        os.replace(final, old)
+    os.replace(stage, final)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- index of several runs

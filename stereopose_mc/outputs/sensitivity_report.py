@@ -76,8 +76,10 @@ def _fmt(v: float, digits: int = 2) -> str:
     return "" if not np.isfinite(v) else f"{v:+.{digits}f}"
 
 
-def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str]) -> tuple[list[str], list[figs.FigureFile]]:
-    """HTML blocks and figures of the sensitivity analysis (empty for a run without dispersions)."""
+def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str],
+            fig_dir: Path | None = None) -> tuple[list[str], list[figs.FigureFile]]:  # fmt: skip
+    """HTML blocks and figures (into ``fig_dir``, default ``run_dir/figures``) of the sensitivity analysis
+    (empty for a run without dispersions)."""
     if not config.get("dispersions"):
         return [], []
     try:
@@ -101,7 +103,7 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
         f"{res.invalid} invalid draw(s) left out. Full table: <code>sensitivity.csv</code>.</p>"
     )  # fmt: skip
     fig_files: list[figs.FigureFile] = []
-    out_dir = run_dir / "figures"
+    out_dir = Path(fig_dir) if fig_dir is not None else run_dir / "figures"
     out_dir.mkdir(exist_ok=True)
     params = sens.parameter_columns(trials, scn)
     for label in filters:

@@ -201,6 +201,32 @@ def test_report_on_all_non_finite_data(run6, tmp_path):
     assert (d / "figures" / "time-ekf.png").is_file() and (d / "figures" / "nees-ekf.png").is_file()
 
 
+# 13. an interrupted report leaves the previous figures/ whole
+def test_interrupted_report_keeps_the_previous_figures(run6, tmp_path, monkeypatch):
+    import shutil
+
+    from stereopose_mc.outputs import report
+
+    d = tmp_path / "run"
+    shutil.copytree(run6, d)
+    report.build_run_report(d)
+    before = {p.name: p.read_bytes() for p in (d / "figures").iterdir()}
+    assert "time-iekf.png" in before
+
+    def interrupted(*args, **kwargs):  # Ctrl-C after every run figure was drawn into the staging directory
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report.sensitivity_report, "section", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        report.build_run_report(d)
+    assert {p.name: p.read_bytes() for p in (d / "figures").iterdir()} == before
+    assert not [p for p in d.iterdir() if p.name.startswith(".figures-")]  # no staging left behind
+    monkeypatch.undo()
+    out = report.build_run_report(d)  # and the next report swaps a new set in whole
+    assert sorted(p.name for p in (d / "figures").iterdir()) == sorted(before)
+    assert 'src="data:image/png;base64,' in out.read_text() and "figures/time-iekf.png" in out.read_text()
+
+
 # 9. corrupt run-directory files: one line naming the file
 def _damaged(run6, tmp_path, name: str, edit) -> Path:
     import shutil
@@ -440,6 +466,26 @@ def test_feature_inside_an_occluding_body(shape, inside, tmp_path):
         assert all(line.startswith("error: ") for line in r.output.strip().splitlines())
     else:
         assert r.exit_code == 0, r.output
+
+
+def test_feature_inside_an_occluding_mesh(tmp_path):
+    import yaml
+
+    from scenarios import scenario_dict
+
+    d = scenario_dict()
+    d["target"]["shape"] = {"type": "mesh", "file": str(Path(__file__).resolve().parents[2] / "configs/meshes/box.obj")}
+    d["measurements"]["occlusion"] = True
+    # the 1 x 2 x 3 m box: case B's points lie outside it but point 2, [0, 0, 1.5], on its top face; the new one inside
+    assert d["target"]["feature_points_m"][2] == [0.0, 0.0, 1.5]
+    d["target"]["feature_points_m"] = d["target"]["feature_points_m"] + [[0.1, -0.2, 0.3]]
+    f = tmp_path / "s.yaml"
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    one_error_line(spmc("validate", f), "target.feature_points_m.5", "feature point 5 [0.1, -0.2, 0.3]",
+                   "inside the target's mesh")  # fmt: skip
+    d["target"]["feature_points_m"] = d["target"]["feature_points_m"][:-1]
+    f.write_text(yaml.safe_dump(d, sort_keys=False))
+    assert spmc("validate", f).exit_code == 0
 
 
 def test_exit_ignores_a_late_ctrl_c(monkeypatch):
