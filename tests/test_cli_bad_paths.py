@@ -133,6 +133,14 @@ def test_progress_on_resume_counts_finished_divergences_per_filter(tmp_path):
     assert calls[-1] == (4, 4, {lab: 4 for lab in labels})
 
 
+def _cmdline(p: psutil.Process) -> str:
+    """A process's command line, or '' for one that exited meanwhile (a zombie or gone)."""
+    try:
+        return " ".join(p.cmdline())
+    except psutil.Error:
+        return ""
+
+
 def test_workers_die_with_their_parent(tmp_path):
     """SIGKILL the driver of a --jobs 2 run: its loky workers exit within seconds, not minutes."""
     f = write_scenario(tmp_path / "s.yaml", trials=40, time={"dt_s": 1.0, "duration_s": 100.0})
@@ -144,8 +152,7 @@ def test_workers_die_with_their_parent(tmp_path):
         deadline = time.time() + 60
         while time.time() < deadline and len(workers) < 2:
             time.sleep(0.2)
-            workers = [c for c in psutil.Process(proc.pid).children(recursive=True)
-                       if "loky" in " ".join(c.cmdline())]  # fmt: skip
+            workers = [c for c in psutil.Process(proc.pid).children(recursive=True) if "loky" in _cmdline(c)]
         assert len(workers) >= 2, "no loky workers started"
         time.sleep(1.0)  # let them take their chunks
         os.kill(proc.pid, signal.SIGKILL)

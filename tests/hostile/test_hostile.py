@@ -155,7 +155,7 @@ def test_kernels_recorded_before_the_first_chunk(quick_scenario, tmp_path, monke
     d = tmp_path / "run"
     seen = []
 
-    def killed(scenario_json, trials, timeseries, kernels="numpy"):
+    def killed(scenario_json, trials, timeseries, kernels="numpy", tick=None):
         seen.append(kernels)
         raise KeyboardInterrupt("killed before the first chunk finished")
 
@@ -173,13 +173,13 @@ def test_kernels_recorded_before_the_first_chunk(quick_scenario, tmp_path, monke
     assert (d / "manifest.json").read_bytes() == before
 
 
-def test_resume_of_a_numpy_run_refuses_compiled(run6, tmp_path):
+def test_resume_of_a_compiled_run_refuses_numpy(run6, tmp_path):
     import shutil
 
     d = tmp_path / "run"
-    shutil.copytree(run6, d)
+    shutil.copytree(run6, d)  # run6 ran on the default kernels: compiled
     before = (d / "manifest.json").read_bytes()
-    one_error_line(spmc("run", "--resume", d, "--kernels", "compiled", "--quiet"), "--kernels numpy")
+    one_error_line(spmc("run", "--resume", d, "--kernels", "numpy", "--quiet"), "--kernels compiled")
     assert (d / "manifest.json").read_bytes() == before
 
 
