@@ -8,15 +8,14 @@ docs/validation/summary.csv that the script wrote with it.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from doc_scripts import load_doc_script
 
 from stereopose_mc.data import thesis_percentiles
 from stereopose_mc.rundir.tables import ERROR_NAMES
@@ -26,15 +25,7 @@ DOC = ROOT / "docs" / "validation.md"
 SUMMARY = ROOT / "docs" / "validation" / "summary.csv"
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("make_validation", ROOT / "docs" / "make_validation.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
-
-
-mv = _load()
+mv = load_doc_script("make_validation")
 
 BASE = {"e_rho": 0.5, "e_rho_dot": 1e-3, "e_omega": 5e-4, "e_theta": 0.7, "e_k1": 0.03, "e_k2": 0.02}
 
