@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import yaml
+from docgen import reason_kind, splice
 
 from stereopose_mc.config import load_scenario
 from stereopose_mc.core import state as st
@@ -157,15 +158,6 @@ class Row:
     @property
     def not_lost(self) -> int:
         return self.trials - self.lost
-
-
-REASON_KINDS = (("mean NIS", "NIS test"), ("gate rejected", "gate lock-out"), ("no feature", "no features"),
-                ("non-finite", "numerical"), ("not positive definite", "numerical"), ("linear algebra", "numerical"))
-
-
-def reason_kind(reason: str) -> str:
-    """A lost reason by kind: ``filter lost: mean NIS over 10 steps = 300 ...`` -> ``NIS test``."""
-    return next((kind for text, kind in REASON_KINDS if text in (reason or "")), reason or "(none)")
 
 
 def run_rows(key: str) -> list[Row]:
@@ -311,20 +303,6 @@ def estimators_reading(est: dict[str, Row]) -> str:
             + "; ".join(f"{r.label} {lost_text(r)}, {r.inconsistent} flagged inconsistent" for r in pl) + ".")
 
 
-def markers(name: str) -> tuple[str, str]:
-    return f"<!-- filters:{name}:begin -->", f"<!-- filters:{name}:end -->"
-
-
-def splice(text: str, name: str, body: str) -> str:
-    """Replace the text between the markers of ``name`` (which must be present once each) by ``body``."""
-    begin, end = markers(name)
-    if text.count(begin) != 1 or text.count(end) != 1:
-        raise SystemExit(f"{DOC}: markers of {name!r} missing or repeated")
-    head, rest = text.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    return f"{head}{begin}\n{body}\n{end}{tail}"
-
-
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=None, help="default: the scenario's (100)")
@@ -337,7 +315,7 @@ def main(argv: list[str]) -> None:
     runs = {c.key: run_rows(c.key) for c in CAMPAIGNS}
     text = DOC.read_text(encoding="utf-8")
     for name, body in blocks(runs).items():
-        text = splice(text, name, body)
+        text = splice(text, f"filters:{name}", body, DOC)
     DOC.write_text(text, encoding="utf-8")
     print(f"wrote {DOC}")
 

@@ -15,12 +15,13 @@ DOC = (ROOT / "docs" / "filters.md").read_text(encoding="utf-8")
 
 
 mf = load_doc_script("make_filters")
+dg = load_doc_script("docgen")
 TABLES = [c for c in mf.CAMPAIGNS if not c.key.startswith("gating-")]
 SENTENCES = ("error-state-reading", "ekf-lost", "estimators-reading", "initial-estimate-lost")
 
 
 def block(name: str) -> str:
-    begin, end = mf.markers(name)
+    begin, end = dg.markers(f"filters:{name}")
     assert DOC.count(begin) == 1 and DOC.count(end) == 1, name
     body = DOC.split(begin, 1)[1].split(end, 1)[0]
     assert body.strip(), f"block {name} is empty"
@@ -76,8 +77,8 @@ def test_no_hand_typed_old_vocabulary():
 
 
 def test_splice_replaces_only_between_markers():
-    begin, end = mf.markers("x")
+    begin, end = dg.markers("x")
     text = f"a\n{begin}\nold\n{end}\nb\n"
-    assert mf.splice(text, "x", "new") == f"a\n{begin}\nnew\n{end}\nb\n"
-    with pytest.raises(SystemExit):
-        mf.splice("no markers", "x", "new")
+    assert dg.splice(text, "x", "new", Path("doc.md")) == f"a\n{begin}\nnew\n{end}\nb\n"
+    with pytest.raises(SystemExit, match="doc.md: markers of 'x'"):
+        dg.splice("no markers", "x", "new", Path("doc.md"))
