@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation realism filters-doc venv clean screenshots
+.PHONY: test demo bench goldens validation realism filters-doc sensitivity-doc venv clean screenshots
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -56,6 +56,10 @@ realism: $(STAMP)
 # docs/filters.md's comparison tables: case-B campaigns (about 30 s), spliced between the doc's markers
 filters-doc: $(STAMP)
 	$(BIN)/python docs/make_filters.py
+
+# docs/sensitivity.md's mission example: configs/mission-debris.yaml, 500 trials, and its report (about 20 s)
+sensitivity-doc: $(STAMP)
+	$(BIN)/python docs/make_sensitivity.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -92,7 +92,8 @@ MEANINGS = {
     "filters": "The filters run on every trial (same initial estimate and measurements: paired errors). Entries: see "
                "the next table. Default: one IEKF with all defaults.",
     "percentiles": "Percentiles of the per-trial mean errors in the summary tables (thesis: 50, 70, 90, 100).",
-    "divergence.rho_m": "A trial whose position error exceeds this is marked diverged and frozen.",
+    "divergence.rho_m": "A trial whose position error exceeds this is flagged `inconsistent` (a flag: it runs on and its "
+                         "errors count; docs/filters.md).",
     "divergence.rho_dot_mps": "Same for the velocity error.",
     "divergence.omega_degps": "Same for the angular-velocity error.",
     "divergence.k": "Same for the error of k1 or k2.",
@@ -100,7 +101,7 @@ MEANINGS = {
     "divergence.nis_start_s": "Time from which the lost-filter (NIS) test applies; the first updates are far from linear.",
     "dispersions": "Truth dispersions: `sampling` (`random` \\| `sobol` \\| `lhs`) and one entry per dispersed key path "
     "(`{dist: ..., mode: ..., applies_to: ...}`); null = every trial shares the nominal truth. See \"Dispersions\" below.",
-    "divergence.sigma_ratio": "A trial is `inconsistent` (not converged) when a block's error stays above this many of "
+    "divergence.sigma_ratio": "A trial is flagged `inconsistent` when a block's error stays above this many of "
                               "the filter's own sigmas for that block over `nis_window_steps` steps (docs/filters.md).",
     "divergence.nees_factor": "A trial is `inconsistent` when its gauge-projected NEES stays above this times the "
                               "chi-square 99.9 % bound over `nis_window_steps` steps (docs/filters.md).",
