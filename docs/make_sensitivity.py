@@ -1,4 +1,4 @@
-"""Regenerate the mission example's numbers in docs/sensitivity.md (issue 33).
+"""Regenerate the mission example's and the sweep's numbers in docs/sensitivity.md (issue 33).
 
     .venv/bin/python docs/make_sensitivity.py               # run the campaign, then rewrite the blocks
     .venv/bin/python docs/make_sensitivity.py --skip-runs   # rewrite them from runs/mission-debris/ as it is
@@ -6,13 +6,17 @@
 The campaign is the doc's own command, ``spmc run configs/mission-debris.yaml --kernels
 compiled --out runs/mission-debris`` (500 trials, the scenario's seed) followed by ``spmc
 report runs/mission-debris`` (which writes ``sensitivity.csv``), run here through the
-engine and the report. Only the text between ``<!-- sensitivity:<block>:begin -->`` and
+engine and the report; then the doc's sweep, ``spmc sweep configs/sweeps/baseline-range.yaml
+--out runs/sweep-baseline-range`` (its ``percentiles.csv``). Only the text between ``<!-- sensitivity:<block>:begin -->`` and
 ``<!-- sensitivity:<block>:end -->`` in docs/sensitivity.md is replaced.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -29,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "mission-debris.yaml"
 RUN = ROOT / "runs" / "mission-debris"
 DOC = ROOT / "docs" / "sensitivity.md"
+SWEEP = ROOT / "runs" / "sweep-baseline-range"
+SWEEP_CMD = ["sweep", "configs/sweeps/baseline-range.yaml", "--out", "runs/sweep-baseline-range", "--jobs"]
 RATE = "|truth_initial_state.omega_degps|"
 BINS = (0.0, 1.0, 2.0, 3.0)  # tumble rate, deg/s (the scenario draws it uniform in 0.1-3)
 METRICS = ("e_k1", "e_k2", "e_rho", "e_rho_dot", "e_omega", "e_theta", "diverged")
@@ -42,6 +48,10 @@ def run(jobs: int) -> None:
     engine.run(load_scenario(CONFIG), RUN, engine.RunOptions(jobs=jobs, overwrite=True, command=[
         "spmc", "run", "configs/mission-debris.yaml", "--kernels", "compiled", "--out", "runs/mission-debris"]))  # fmt: skip
     build_run_report(RUN)
+    shutil.rmtree(SWEEP, ignore_errors=True)  # a sweep resumes finished points; these are rerun
+    spmc = Path(sys.executable).with_name("spmc")
+    subprocess.run([str(spmc), *SWEEP_CMD, str(jobs), "--timeseries", "none", "--no-report", "-q"], cwd=ROOT,
+                   check=True)  # fmt: skip
 
 
 def name(p: str) -> str:
@@ -99,6 +109,39 @@ def tumble_table(t: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def sweep_tables() -> tuple[str, str]:
+    """The sweep's IEKF median e_omega grid, and its reading (ranges, ratios, lost counts), from its percentiles."""
+    meta = json.loads((SWEEP / "sweep.json").read_text())
+    (bp, bs), (rp, rs) = ((a["path"], a["values"]) for a in meta["axes"])
+    pc = pd.read_csv(SWEEP / "percentiles.csv")
+    pc[["point", "label"]] = pc["filter"].str.rsplit("/", n=1, expand=True)
+    med = pc[(pc["population"] == "converged") & (pc["percentile"] == 50)].set_index(["point", "label"])
+    at = {(p["values"][bp], p["values"][rp]): p["name"] for p in meta["points"]}
+
+    def get(b, r, label, col):
+        return med.loc[(at[b, r], label), col]
+
+    lines = ["| baseline \\ range | " + " | ".join(f"{r:g} m" for r in rs) + " |", "|" + "---|" * (len(rs) + 1)]
+    lines += [f"| {b:g} m | " + " | ".join(f"{get(b, r, 'iekf', 'e_omega'):.2g}" for r in rs) + " |" for b in bs]
+    ratio = {r: get(bs[0], r, "iekf", "e_omega") / get(bs[-1], r, "iekf", "e_omega") for r in rs}
+    span = {c: [get(b, r, "iekf", c) for b in bs for r in rs] for c in ("e_rho", "e_k1", "e_k2")}
+    lost = {(b, r, f): int(get(b, r, f, "lost")) for b in bs for r in rs for f in ("iekf", "ekf")}
+    n = int(meta["trials"])
+
+    def lost_range(f, r):
+        v = [lost[b, r, f] for b in bs]
+        return f"{min(v)}-{max(v)} of {n}" if min(v) != max(v) else f"{v[0]} of {n}"
+
+    text = (f"The rate error falls with the baseline, most at long range (x{ratio[rs[-1]]:.2g} from {bs[0]:g} to "
+            f"{bs[-1]:g} m at {rs[-1]:g} m, x{ratio[rs[0]]:.2g} at {rs[0]:g} m). The median position error "
+            f"({min(span['e_rho']):.2g}-{max(span['e_rho']):.2g} m over the grid) and the inertia-ratio errors (k1 "
+            f"{min(span['e_k1']):.2g}-{max(span['e_k1']):.2g}, k2 {min(span['e_k2']):.2g}-{max(span['e_k2']):.2g}) "
+            f"move less. Lost trials per point: the EKF {lost_range('ekf', rs[0])} at {rs[0]:g} m and "
+            f"{lost_range('ekf', rs[-1])} at {rs[-1]:g} m; the IEKF at most "
+            f"{max(lost[b, r, 'iekf'] for b in bs for r in rs)} of {n}.")
+    return "\n".join(lines), text
+
+
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=available_cores(), help="default: the cores available")
@@ -108,10 +151,14 @@ def main(argv: list[str]) -> None:
         run(a.jobs)
     t = pd.read_parquet(RUN / "trials.parquet")
     s = pd.read_csv(RUN / "sensitivity.csv")
-    note = "<!-- generated by docs/make_sensitivity.py from runs/mission-debris/; do not edit by hand -->\n"
+    note = "<!-- generated by docs/make_sensitivity.py from runs/{}/; do not edit by hand -->\n"
     text = DOC.read_text(encoding="utf-8")
-    for block, body in (("outcome", outcome(t)), ("drivers", drivers_table(s)), ("tumble", tumble_table(t))):
-        text = splice(text, f"sensitivity:{block}", note + body, DOC)
+    grid, reading = sweep_tables()
+    blocks = (("outcome", outcome(t)), ("drivers", drivers_table(s)), ("tumble", tumble_table(t)),
+              ("sweep", grid), ("sweep-reading", reading))  # fmt: skip
+    for block, body in blocks:
+        src = SWEEP.name if block.startswith("sweep") else RUN.name
+        text = splice(text, f"sensitivity:{block}", note.format(src) + body, DOC)
     DOC.write_text(text, encoding="utf-8")
     print(f"wrote {DOC}")
 

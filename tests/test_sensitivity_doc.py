@@ -28,11 +28,15 @@ def test_outcome_counts_each_filter():
         assert m and int(m[1]) + int(m[3]) == int(m[2]) == 500, label
 
 
-@pytest.mark.parametrize("name, rows", [("drivers", len(ms.METRICS)), ("tumble", len(ms.BINS) - 1)])
+@pytest.mark.parametrize("name, rows", [("drivers", len(ms.METRICS)), ("tumble", len(ms.BINS) - 1), ("sweep", 3)])
 def test_tables_have_their_rows(name, rows):
     lines = [ln for ln in block(name).splitlines() if ln.startswith("| ") and not ln.startswith("| metric")
-             and not ln.startswith("| tumble")]  # fmt: skip
+             and not ln.startswith(("| tumble", "| baseline"))]  # fmt: skip
     assert len(lines) == rows
+
+
+def test_sweep_reading_counts_lost_trials():
+    assert re.search(r"the EKF \d+(-\d+)? of 50 at 30 m .* the IEKF at most \d+ of 50\.", block("sweep-reading"))
 
 
 def test_nothing_marked_stale():
