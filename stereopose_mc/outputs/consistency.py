@@ -48,7 +48,7 @@ class Consistency:
     def verdict(self) -> str:
         """The finding in words, with the numbers."""
         g, full = self.nees.get("nees_gauge", np.nan), self.nees.get("nees", np.nan)
-        head = (f"{self.label}: median time-averaged NEES/dof {g:.3g} gauge-projected ({self.dof['nees_gauge']} dof), "
+        head = (f"{self.label}, over {self.trials} trials not lost: median time-averaged NEES/dof {g:.3g} gauge-projected ({self.dof['nees_gauge']} dof), "
                 f"{full:.3g} full ({self.dof['nees']} dof); NIS/dof {self.nis_ratio:.3g} "
                 f"(95 % band {self.nis_band[0]:.3g}-{self.nis_band[1]:.3g})")
         if self.consistent:

@@ -422,7 +422,7 @@ def results_summary_html(data: RunData) -> str:
         cls = {True: "ok", False: "bad", None: "note"}[ok]
         rows.append([esc(s.label), esc(s.kind), rate_cell(s.lost, s.trials), rate_cell(s.inconsistent, s.trials),
                      str(s.kept), *[esc(v) for v in cells], f'<span class="{cls}">{esc(word)}</span>'])  # fmt: skip
-        verdict = c.verdict().removeprefix(f"{s.label}: ") if c is not None and c.trials else word
+        verdict = c.verdict().removeprefix(f"{s.label}, ") if c is not None and c.trials else word
         parts = [f'<span class="{cls}">{esc(verdict)}</span>']
         if s.lost_kinds:
             parts.append(f"<i>Lost</i>: {esc(s.kinds_words(s.lost_kinds))}.")
