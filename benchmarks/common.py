@@ -230,10 +230,11 @@ class Prepared:
         raise ValueError(f"no filter of type {kind!r}")
 
     def full_state_filter(self, kind: str):
-        """The filter of type ``kind`` with ``error_state: full`` (the FilterPy baseline's full-state EKF)."""
+        """The filter of type ``kind`` with ``error_state: full`` and the thesis's first-order pseudo-row ``R`` (the
+        FilterPy baseline's full-state EKF)."""
         import dataclasses
 
-        return dataclasses.replace(self.filter(kind), error_state="full")
+        return dataclasses.replace(self.filter(kind), error_state="full", pseudo_second_order=False)
 
 
 def prepare(d: dict) -> Prepared:

@@ -55,6 +55,7 @@ class FilterSetup:
     substeps: int
     gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
     error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
+    pseudo_second_order: bool = True  # the pseudo rows' R adds their linearization's variance (core.inertia)
 
     def iteration(self, first: bool) -> Iteration | None:
         """The Gauss-Newton knobs of an update (``first``: the update at ``t = dt``); None: the EKF update."""
@@ -143,6 +144,12 @@ class FilterBase(_Model):
     transition: Literal["expm", "taylor"] = "taylor"
     taylor_order: Annotated[int, Field(ge=1, le=12)] = 4
     integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 1
+    pseudo_linearization: Literal["second_order", "first_order"] = Field(
+        default="second_order",
+        description="R of the inertia pseudo-measurement's rows: 'second_order' adds the variance its linearization "
+        "leaves out (the gyroscopic term is quadratic in omega and multiplies k: large while omega is uncertain); "
+        "'first_order': sigma_alpha^2 alone (the thesis). See docs/filters.md, Inertia pseudo-measurement",
+    )
 
     @property
     def label(self) -> str:

@@ -163,4 +163,5 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         substeps=f.integration_substeps,
         gate_probability=None if f.gating is None else f.gating.probability,
         error_state=f.error_state,
+        pseudo_second_order=f.pseudo_linearization == "second_order",
     )

@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 from ..config.resolve import FilterSetup, Setup
 from ..core import camera, dynamics, jacobians, state as st
 from ..core import kalman as kf
-from ..core.inertia import h_pseudo
+from ..core import layout as lay
+from ..core.inertia import h_pseudo, pseudo_second_order_variance
 from ..core.orbit import leader_kinematics
 from . import gating
 
@@ -107,6 +108,16 @@ def measurement_model(setup: Setup, step: StepMeasurement):
         return hx, (np.concatenate(Hs, axis=-2) if jac else None)
 
     return measure
+
+
+def pseudo_linearization_variance(x: Array, P: Array, setup: Setup, t: float) -> Array:
+    """``(b, 3)``: the variance the pseudo rows' linearization at ``x`` leaves out (``core.inertia``), from the
+    ``omega`` and ``k`` blocks of ``P`` (``(b, n, n)`` or an error state's ``(b, n-1, n-1)``: ``omega`` sits at the same
+    offset and ``k`` last in every chart, both additive)."""
+    at = lay.OMEGA if P.shape[-1] == x.shape[-1] else lay.E_OMEGA
+    w = slice(at, at + lay.VEC)
+    nu_dot = leader_kinematics(setup.orbit, t).nu_dot
+    return pseudo_second_order_variance(x, P[..., w, w], P[..., -2:, -2:], P[..., -2:, w], nu_dot)
 
 
 def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int, alpha_var: Array | None = None) -> Array:

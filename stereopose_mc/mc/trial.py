@@ -267,11 +267,16 @@ def run_filter(
         setup_k = setup if pseudo_k == setup.pseudo else dataclasses.replace(setup, pseudo=False)
         if not pseudo_k and setup.pseudo:
             nis_dof[k] -= 3
+        alpha_var = (pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor) if src.differentiated
+                     else None)  # None: the filter's sigma_alpha^2  # fmt: skip
+        if pseudo_k and fs.pseudo_second_order:  # + the variance the pseudo rows' linearization leaves out
+            if alpha_var is None:
+                alpha_var = np.full((B, 3), fs.sigma_alpha**2)
+            with np.errstate(all="ignore"):
+                alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
         step = relnav.StepMeasurement(
             y=relnav.stack_measurement(y_feat[:, k], vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
-            t=truth.t[k], alpha_var=pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor)
-            if src.differentiated else None,  # None: the filter's sigma_alpha^2, as before
-            feature_mask=None if kept is None else kept[:, k][:, vis],
+            t=truth.t[k], alpha_var=alpha_var, feature_mask=None if kept is None else kept[:, k][:, vis],
         )
         with np.errstate(all="ignore"):
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
