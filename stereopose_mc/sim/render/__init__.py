@@ -1,0 +1,1 @@
+"""Rendered stereo images of the target (docs/images.md): scene, ray-cast renderer, sensor."""

@@ -1,0 +1,120 @@
+"""Seeded procedural albedo textures of a spacecraft's surface and their mip-map sampling.
+
+Three materials, each a periodic square tile of ``TILE`` texels (albedo in [0, 1]):
+
+- ``MLI``: crinkled multilayer insulation, band-limited noise at three scales (3, 10 and 40
+  texels) around a mid grey, with bright tape seams;
+- ``EQUIPMENT``: boxes, plates and bolts, random rectangles and discs on a darker base;
+- ``CELLS``: solar cells, dark cells on a bright interconnect grid with thin bus bars.
+
+A texel is ``TEXEL_M`` metres on the body (the tile repeats every ``TILE * TEXEL_M`` m).
+Sampling is trilinear over a mip-map (Williams 1983): level ``L = log2(footprint / TEXEL_M)``
+for a pixel footprint on the surface, bilinear within the levels ``floor(L)`` and
+``floor(L) + 1`` and linear between them, so a texture finer than a pixel is averaged, not
+aliased (aliasing would make the rendered texture flicker and the tracker drift).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import map_coordinates
+
+Array = NDArray[np.float64]
+
+MLI, EQUIPMENT, CELLS = 0, 1, 2
+MATERIALS = ("mli", "equipment", "cells")
+TILE = 1024  # texels per tile side (a power of two: the mip levels halve it exactly)
+TEXEL_M = 0.002  # metres per texel at level 0
+LEVELS = 8  # mip levels 0..7 (the coarsest 8 x 8 texels)
+
+
+def band_noise(rng: np.random.Generator, n: int, scale: float) -> NDArray[np.float32]:
+    """Periodic Gaussian-filtered white noise ``(n, n)`` of unit standard deviation (filter sigma ``scale`` texels).
+
+    Filtered in the Fourier domain (``exp(-2 pi^2 s^2 |f|^2)``), so the tile wraps seamlessly.
+    """
+    w = rng.standard_normal((n, n))
+    f = np.fft.fftfreq(n)
+    g = np.exp(-2.0 * np.pi**2 * scale**2 * (f[:, None] ** 2 + np.fft.rfftfreq(n)[None, :] ** 2))
+    out = np.fft.irfft2(np.fft.rfft2(w) * g, s=(n, n))
+    return (out / out.std()).astype(np.float32)
+
+
+def mli_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
+    t = 0.55 + 0.10 * band_noise(rng, n, 3.0) + 0.08 * band_noise(rng, n, 10.0) + 0.06 * band_noise(rng, n, 40.0)
+    for _ in range(3):  # tape seams, 8 texels wide
+        k = int(rng.integers(n))
+        if rng.random() < 0.5:
+            t[:, k : k + 8] = 0.8
+        else:
+            t[k : k + 8, :] = 0.8
+    return np.clip(t, 0.05, 0.95)
+
+
+def equipment_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
+    t = (0.3 + 0.03 * band_noise(rng, n, 2.0)).astype(np.float32)
+    for _ in range(60):  # boxes and plates with a darker rim
+        x, y = (int(v) for v in rng.integers(0, n, 2))
+        w, h = (int(v) for v in rng.integers(15, 160, 2))
+        a = float(rng.uniform(0.1, 0.85))
+        cv2.rectangle(t, (x, y), (x + w, y + h), a, thickness=-1)
+        cv2.rectangle(t, (x, y), (x + w, y + h), 0.5 * a, thickness=3)
+    for _ in range(150):  # bolts
+        x, y = (int(v) for v in rng.integers(0, n, 2))
+        cv2.circle(t, (x, y), int(rng.integers(3, 7)), 0.9, thickness=-1)
+    return np.clip(t, 0.05, 0.95)
+
+
+def cells_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
+    cw, ch, gap = 32, 21, 3  # a cell 6.4 x 4.2 cm with a 6 mm interconnect at 2 mm per texel
+    rows, cols = np.mgrid[0:n, 0:n]
+    shade = rng.uniform(0.15, 0.22, size=(n // ch + 1, n // cw + 1)).astype(np.float32)
+    t = shade[rows // ch, cols // cw]
+    t[(rows % 7 == 3) & (rows % ch > gap)] = 0.45  # bus bars
+    t[(rows % ch < gap) | (cols % cw < gap)] = 0.7  # interconnect grid
+    return t.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Atlas:
+    """Mip pyramids ``pyramids[material][level]`` of the material tiles."""
+
+    pyramids: tuple[tuple[NDArray[np.float32], ...], ...]
+
+    def sample(self, material: int, a: Array, b: Array, footprint_m: Array) -> Array:
+        """Albedo at texture coordinates ``a, b`` (metres on the tile, periodic) for a pixel footprint (m)."""
+        lev = np.clip(np.log2(np.maximum(footprint_m, 1e-12) / TEXEL_M), 0.0, LEVELS - 1.0)
+        lo = np.floor(lev).astype(int)
+        w = lev - lo
+        out = np.empty_like(a)
+        for L in np.unique(lo):
+            m = lo == L
+            s = TEXEL_M * 2.0**L
+            v0 = self._bilinear(material, L, a[m] / s, b[m] / s)
+            if L + 1 < LEVELS:
+                v1 = self._bilinear(material, L + 1, a[m] / (2 * s), b[m] / (2 * s))
+                out[m] = (1.0 - w[m]) * v0 + w[m] * v1
+            else:
+                out[m] = v0
+        return out
+
+    def _bilinear(self, material: int, level: int, col: Array, row: Array) -> Array:
+        img = self.pyramids[material][level]
+        # texel centres at integer coordinates; grid-wrap: the tile is periodic
+        return map_coordinates(img, [row - 0.5, col - 0.5], order=1, mode="grid-wrap")
+
+
+def atlas(rng: np.random.Generator) -> Atlas:
+    """The three material tiles drawn from ``rng`` and their mip pyramids (2 x 2 box filter per level)."""
+    tiles = (mli_tile(rng), equipment_tile(rng), cells_tile(rng))
+    pyr = []
+    for t in tiles:
+        levels = [t]
+        for _ in range(LEVELS - 1):
+            levels.append(cv2.resize(levels[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+        pyr.append(tuple(levels))
+    return Atlas(tuple(pyr))
