@@ -18,7 +18,7 @@ RIG = rr.Rig(CAM, 0.8)
 
 
 def _pose(axis, deg, rho):
-    q = qt.normalize(np.r_[np.cos(np.radians(deg) / 2), np.sin(np.radians(deg) / 2) * np.asarray(axis) / np.linalg.norm(axis)])
+    q = qt.from_axis_angle(np.asarray(axis, float) / np.linalg.norm(axis), np.radians(deg))
     return np.asarray(rho, float), qt.dcm(q)
 
 

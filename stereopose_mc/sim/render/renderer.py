@@ -107,7 +107,8 @@ def directions_L(camera: PixelCamera, col: Array, row: Array) -> Array:
 
 
 def project_px(camera: PixelCamera, rig_baseline: float, p_L: Array, cam: str) -> Array:
-    """Image positions ``(..., 2) = (col, row)`` of points ``p_L (..., 3)`` in one camera (the point model's projection)."""
+    """Image positions ``(..., 2) = (col, row)`` of points ``p_L (..., 3)`` in one camera (the point model's
+    projection)."""
     x = p_L[..., 0] - (rig_baseline if cam == "left" else 0.0)
     u, v = x / p_L[..., 1], p_L[..., 2] / p_L[..., 1]
     return np.stack([camera.cx + camera.f_px * u, camera.cy + camera.f_px * v], axis=-1)
@@ -179,16 +180,33 @@ def albedo_at(scene: Scene, p: Array, tri: NDArray[np.int64], footprint_m: Array
     return out
 
 
+def footprint_window(scene: Scene, rig: Rig, rho: Array, D: Array, cam: str) -> tuple[slice, slice]:
+    """Rows and columns of the pixels whose rays can meet the target: the bounding box of its projected
+    vertices (a ray meets the mesh only inside the projection of its convex hull), one pixel wider; the
+    whole image if a vertex is not in front of the camera."""
+    cam_ = rig.camera
+    p_L = scene.mesh.vertices @ D.T + rho
+    if np.any(p_L[:, 1] <= 0.0):
+        return slice(0, cam_.height), slice(0, cam_.width)
+    px = project_px(cam_, rig.baseline, p_L, cam)
+    c0, r0 = np.clip(np.floor(px.min(axis=0)).astype(int) - 1, 0, [cam_.width, cam_.height])
+    c1, r1 = np.clip(np.ceil(px.max(axis=0)).astype(int) + 1, 0, [cam_.width, cam_.height])
+    return slice(r0, r1), slice(c0, c1)
+
+
 def render_view(scene: Scene, rig: Rig, rho: Array, D: Array, sun_L: Array, cam: str,
                 settings: RenderSettings = RenderSettings()) -> View:  # fmt: skip
-    """Radiance and ground truth of one camera at the pose ``(rho, D)``."""
+    """Radiance and ground truth of one camera at the pose ``(rho, D)`` (rays cast only where the target can be)."""
     s = settings.supersample
+    H, W = rig.camera.height, rig.camera.width
+    rows, cols = footprint_window(scene, rig, rho, D, cam)
     col, row = pixel_grid(rig.camera, s)
-    H, W, S = col.shape
+    col, row = col[rows, cols], row[rows, cols]
+    h, w, S = col.shape
     hits = cast(scene, rig, rho, D, cam, col, row)
-    flat = Hits(*(a.reshape((H * W * S,) + a.shape[3:]) for a in (hits.point, hits.triangle, hits.surface,
+    flat = Hits(*(a.reshape((h * w * S,) + a.shape[3:]) for a in (hits.point, hits.triangle, hits.surface,
                                                                    hits.depth, hits.normal, hits.hit)))  # fmt: skip
-    rad = np.zeros(H * W * S)
+    rad = np.zeros(h * w * S)
     m = flat.hit
     if m.any():
         d_T = directions_L(rig.camera, col.ravel()[m], row.ravel()[m]) @ D
@@ -196,13 +214,18 @@ def render_view(scene: Scene, rig: Rig, rho: Array, D: Array, sun_L: Array, cam:
         rng_m = np.linalg.norm(sub.point - D.T @ (rig.centre(cam) - rho), axis=-1)
         footprint = rng_m / (rig.camera.f_px * s)
         rad[m] = shade(scene, sub, d_T, D.T @ np.asarray(sun_L, dtype=float), footprint, settings)
-    radiance = rad.reshape(H, W, S).mean(axis=-1)
+    radiance = np.zeros((H, W))
+    radiance[rows, cols] = rad.reshape(h, w, S).mean(axis=-1)
     if s % 2:  # the middle sub-sample is the pixel centre
-        truth = Hits(*(a[:, :, (S - 1) // 2] for a in (hits.point, hits.triangle, hits.surface, hits.depth,
-                                                          hits.normal, hits.hit)))  # fmt: skip
+        win = Hits(*(a[:, :, (S - 1) // 2] for a in (hits.point, hits.triangle, hits.surface, hits.depth,
+                                                        hits.normal, hits.hit)))  # fmt: skip
     else:
         col0, row0 = pixel_grid(rig.camera, 1)
-        truth = cast(scene, rig, rho, D, cam, col0[..., 0], row0[..., 0])
+        win = cast(scene, rig, rho, D, cam, col0[rows, cols, 0], row0[rows, cols, 0])
+    truth = Hits(np.full((H, W, 3), np.nan), np.full((H, W), -1, np.int64), np.full((H, W), -1, np.int64),
+                 np.full((H, W), np.nan), np.full((H, W, 3), np.nan), np.zeros((H, W), bool))  # fmt: skip
+    for full, part in zip(truth.__dict__.values(), win.__dict__.values()):
+        full[rows, cols] = part
     return View(radiance, truth)
 
 

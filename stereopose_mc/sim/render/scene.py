@@ -111,7 +111,8 @@ def scene(shape: shapes.Shape, seed: int, panels: Panels | None = None) -> Scene
     n_surf = int(label.max()) + 1
     on_panel = np.zeros(n_surf, bool)
     on_panel[label[n_body:]] = True
-    material = np.where(on_panel, texture.CELLS, rng.choice([texture.MLI, texture.EQUIPMENT], size=n_surf, p=[0.6, 0.4]))
+    body_material = rng.choice([texture.MLI, texture.EQUIPMENT], size=n_surf, p=[0.6, 0.4])
+    material = np.where(on_panel, texture.CELLS, body_material)
     offset = rng.uniform(0.0, texture.TILE * texture.TEXEL_M, size=(n_surf, 2))
     return Scene(shape, mesh, n_body, np.asarray(mesh.face_normals, dtype=float), label, material, offset,
                  texture.atlas(rng))  # fmt: skip

@@ -56,7 +56,7 @@ def mli_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
 
 
 def equipment_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
-    t = (0.3 + 0.03 * band_noise(rng, n, 2.0)).astype(np.float32)
+    t = (0.4 + 0.03 * band_noise(rng, n, 2.0)).astype(np.float32)
     for _ in range(60):  # boxes and plates with a darker rim
         x, y = (int(v) for v in rng.integers(0, n, 2))
         w, h = (int(v) for v in rng.integers(15, 160, 2))
