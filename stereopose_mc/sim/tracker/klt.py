@@ -19,8 +19,8 @@ Per step ``k`` with the rectified pair (right image ``R_k``, left image ``L_k``)
    at the prior disparity (the median of the live tracks', or the pair's global shift by
    phase correlation), then back into ``R_k`` (left-right check, ``lr_max_px``), then the
    affine refinement of the right window in ``L_k`` (a slanted face looks sheared between
-   the cameras); rejected when the match leaves its row by more than ``row_max_px`` or
-   straddles a depth edge (below).
+   the cameras); rejected when the refined windows correlate less than ``detect_ncc``, when
+   the match leaves its row by more than ``row_max_px`` or straddles a depth edge (below).
 4. **Edge tests** on the right image's window (``window_px`` square) around a feature:
    - *dark edge*: more than ``dark_max_fraction`` of the window below ``dark_dn`` (a shadow
      edge or the silhouette against a black sky: such features slide with the edge, not with
@@ -91,7 +91,8 @@ class TrackerSettings:
     dark_max_fraction: float = 0.02
     edge_ratio: float = 0.05
     disparity_jump_px: float = 0.5
-    min_ncc: float = 0.85  # affine match of a window (temporal: to its detection window; stereo: right to left)
+    min_ncc: float = 0.85  # affine match of a window to its detection window
+    detect_ncc: float = 0.9  # stereo match (right window in the left image) a new track needs
     border_px: int = 16  # no features closer to the image border
 
     def __post_init__(self):
@@ -280,7 +281,7 @@ def step(state: TrackerState, right: NDArray, left: NDArray, settings: TrackerSe
         d = (L.p - R.p)[:, 0]
         prior = float(np.median(d)) if len(d) else global_disparity(right, left)
         p_l, lr_new, ok, q = stereo(right, left, add, np.full(len(add), prior), settings)
-        ok &= inside(p_l, shape, settings.border_px)
+        ok &= inside(p_l, shape, settings.border_px) & (q >= settings.detect_ncc)
         add, p_l, lr_new, q = add[ok], p_l[ok], lr_new[ok], q[ok]
         ids = np.r_[ids, next_id + np.arange(len(add))]
         next_id += len(add)
