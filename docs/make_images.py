@@ -16,7 +16,6 @@ docs/images/.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -24,19 +23,17 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from docgen import splice
+
+from stereopose_mc.config import load_scenario
+from stereopose_mc.config.resolve import setup_of
+from stereopose_mc.sim.render import renderer as rr, sensor as ss
+from stereopose_mc.sim.render.scene import Panels
+from stereopose_mc.sim.render.setup import ImageSetup, image_setup
+from stereopose_mc.sim.tracker import audit, klt
+from stereopose_mc.sim.truth import simulate_truth
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "docs"))
-
-from docgen import splice  # noqa: E402
-
-from stereopose_mc.config import load_scenario  # noqa: E402
-from stereopose_mc.config.resolve import setup_of  # noqa: E402
-from stereopose_mc.sim.render import renderer as rr, sensor as ss  # noqa: E402
-from stereopose_mc.sim.render.scene import Panels  # noqa: E402
-from stereopose_mc.sim.render.setup import ImageSetup, image_setup  # noqa: E402
-from stereopose_mc.sim.tracker import audit, klt  # noqa: E402
-from stereopose_mc.sim.truth import simulate_truth  # noqa: E402
-
 CONFIG = ROOT / "configs" / "mission-realistic.yaml"
 DOC = ROOT / "docs" / "images.md"
 FIGS = ROOT / "docs" / "images"

@@ -64,7 +64,7 @@ class RenderSettings:
 class Hits:
     """Ray-cast ground truth, shaped like the query: body point in ``T`` (nan: background), triangle
     (-1: background), surface (-1), depth (the point's ``y`` in ``L``, the distance along the optical
-    axis; nan) and the cosine between the outward normal and the direction back to the camera."""
+    axis; nan), the outward shading normal in ``T`` (nan) and whether the ray hit the target."""
 
     point: Array
     triangle: NDArray[np.int64]
