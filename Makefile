@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation realism filters-doc sensitivity-doc venv clean screenshots
+.PHONY: test demo bench goldens validation realism filters-doc sensitivity-doc images-doc venv clean screenshots
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -52,6 +52,10 @@ validation: $(STAMP)
 
 realism: $(STAMP)
 	$(BIN)/python docs/make_realism.py
+
+# docs/images.md's detector comparison and example frames (about two minutes)
+images-doc: $(STAMP)
+	$(BIN)/python docs/make_images.py
 
 # docs/filters.md's comparison tables: case-B campaigns (about 30 s), spliced between the doc's markers
 filters-doc: $(STAMP)
