@@ -17,9 +17,11 @@ For a scenario with ``dispersions``, trial ``j``:
    ones for keys with ``applies_to: both``. The initial estimate is centred on the
    nominal state, or on the dispersed true value for state keys
    (``truth_initial_state.*``, ``target.*``) with ``applies_to: both``, plus the
-   ``N(0, P0)`` error. Trials whose filter models and visibility patterns agree run as
-   one batch (all of them, unless the camera, orbit or noise levels are dispersed with
-   ``applies_to: both``).
+   ``N(0, P0)`` error. Trials whose filter models agree run as one batch (all of them,
+   unless the camera, orbit or noise levels are dispersed with ``applies_to: both``),
+   each with its own visibility (``trial.run_filter``: the update stacks the features any
+   trial of the batch sees and masks, per trial, those it does not; the same numbers as
+   the trial run alone, to round-off).
 """
 
 from __future__ import annotations
@@ -79,6 +81,32 @@ def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
         dst.gated[rows] = src.gated
 
 
+def _same_visibility(visible: np.ndarray) -> list[np.ndarray]:
+    """The trials (positions, increasing) of each distinct visibility pattern ``visible (B, ...)``."""
+    flat = visible.reshape(visible.shape[0], -1)
+    _, inverse = np.unique(flat, axis=0, return_inverse=True)
+    return [np.flatnonzero(inverse.ravel() == c) for c in range(int(inverse.max()) + 1)]
+
+
+def _faults(setup: Setup, seed: int, trials: np.ndarray, y: np.ndarray, exact_y: np.ndarray, visible: np.ndarray):
+    """``(y, kept, outlier)`` of ``sim.faults.apply_faults`` for trials with their own visibility ``(b, K+1, N)``
+    (applied to the trials of each visibility pattern together: each trial's faults come from its own stream)."""
+    y_out, kept, outlier = np.empty_like(y), np.empty(visible.shape, bool), np.empty(visible.shape, bool)
+    for s in _same_visibility(visible):
+        y_out[s], f = apply_faults(setup.sensor, seed, trials[s], y[s], exact_y[s], visible[s[0]])
+        kept[s], outlier[s] = f.kept, f.outlier
+    return y_out, kept, outlier
+
+
+def _measurement_start(fsetup: Setup, fs: FilterSetup, y0: np.ndarray, visible0: np.ndarray, x_draw: np.ndarray):
+    """``filters.initialization.measurement_start`` for trials with their own first-frame visibility ``(b, N)``."""
+    b, n = x_draw.shape
+    x0, P0 = np.empty((b, n)), np.empty((b, n, n))
+    for s in _same_visibility(visible0):
+        x0[s], P0[s] = measurement_start(fsetup, fs, y0[s], visible0[s[0]], x_draw[s])
+    return x0, P0
+
+
 def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
               kernels: str = "numpy", tick=None) -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
     """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order;
@@ -110,25 +138,24 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
         x0_hat = meas.initial_estimates(setup, draws, np.stack([s.x0 for s in fsetups]))
         groups: dict[tuple, list[int]] = {}
         for g, i in enumerate(rows):
-            groups.setdefault((disp.model_key[i], exact.visible[g].tobytes()), []).append(g)
+            groups.setdefault(disp.model_key[i], []).append(g)
         for members in groups.values():
             m = np.asarray(members)
             fsetup = fsetups[m[0]]
             filters: list[FilterSetup] = [filter_setup_of(f, fsetup) for f in scn.filters]
+            vis_m = exact.visible[m]  # (b, K+1, N): each trial its own
             y_m, kept_m = noisy.y[m], None
             if faulty:
-                y_m, f_m = apply_faults(setup.sensor, scn.seed, trials[rows[m]], y_m, exact.y[m], exact.visible[m[0]])
-                kept_m = f_m.kept
-                kept_all[rows[m]], outlier_all[rows[m]] = f_m.kept, f_m.outlier
+                y_m, kept_m, outlier_m = _faults(setup, scn.seed, trials[rows[m]], y_m, exact.y[m], vis_m)
+                kept_all[rows[m]], outlier_all[rows[m]] = kept_m, outlier_m
             tg = Truth(t=truth.t, nu=truth.nu[m], nu_dot=truth.nu_dot[m], nu_ddot=truth.nu_ddot[m], x=truth.x[m],
                        alpha=truth.alpha[m])  # fmt: skip
             x0_m, P0_m = x0_hat[m], None
             if fsetup.initial_estimate == "measurements":  # the filters' own start from the first frame
-                x0_m, P0_m = measurement_start(fsetup, filters[0], y_m[:, 0], exact.visible[m[0]][0], x0_m)
+                x0_m, P0_m = _measurement_start(fsetup, filters[0], y_m[:, 0], vis_m[:, 0], x0_m)
             for fs in filters:
                 t1 = time.perf_counter()
-                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], exact.visible[m[0]], fs, bounds, kept_m, P0_m,
-                               kernels, tick)  # fmt: skip
+                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], vis_m, fs, bounds, kept_m, P0_m, kernels, tick)
                 _put(runs[fs.label], r, rows[m])
                 runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
                                             else np.zeros(B))  # fmt: skip

@@ -198,7 +198,9 @@ def run_filter(
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
-    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)``; ``kept (B, K+1, N)``
+    ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)`` shared or ``(B, K+1, N)`` per trial
+    (a dispersed target: the update stacks the features any trial sees and masks, per trial, those it does
+    not, as it masks the ones the tracker dropped); ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
     holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
     ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n)``: told of
@@ -209,9 +211,10 @@ def run_filter(
     K = setup.steps
     err = np.full((B, K + 1, 6), np.nan)
     nis = np.full((B, K + 1), np.nan)
-    # measurement dimension per step: visible features x channels (+ 3 pseudo rows)
-    nis_dof = visible.sum(axis=1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
-    nis_dof[0] = 0
+    # measurement dimension per step (and per trial, with per-trial visibility): visible features x channels
+    # (+ 3 pseudo rows)
+    nis_dof = visible.sum(axis=-1) * y_feat.shape[-1] + (3 if setup.pseudo else 0)
+    nis_dof[..., 0] = 0
     dof = np.broadcast_to(nis_dof, (B, K + 1)).copy()
     gated = np.zeros((B, K + 1), np.int64)
     its = np.zeros((B, K + 1), int)
@@ -260,13 +263,13 @@ def run_filter(
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
             xa, Pa = stepper.predict(x_act, P_act, truth.t[k - 1], fs, setup)
-        vis = visible[k]
+        vis, y_k, mask_k = _step_features(y_feat, visible, kept, k)
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
         pseudo_k = setup.pseudo and bool(np.isfinite(a_k[active]).all())  # False during the warm-up
         setup_k = setup if pseudo_k == setup.pseudo else dataclasses.replace(setup, pseudo=False)
         if not pseudo_k and setup.pseudo:
-            nis_dof[k] -= 3
+            nis_dof[..., k] -= 3
         alpha_var = (pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor) if src.differentiated
                      else None)  # None: the filter's sigma_alpha^2  # fmt: skip
         if pseudo_k and fs.pseudo_second_order:  # + the variance the pseudo rows' linearization leaves out
@@ -275,8 +278,8 @@ def run_filter(
             with np.errstate(all="ignore"):
                 alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
         step = relnav.StepMeasurement(
-            y=relnav.stack_measurement(y_feat[:, k], vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
-            t=truth.t[k], alpha_var=alpha_var, feature_mask=None if kept is None else kept[:, k][:, vis],
+            y=relnav.stack_measurement(y_k, vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
+            t=truth.t[k], alpha_var=alpha_var, feature_mask=mask_k,
         )
         with np.errstate(all="ignore"):
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
@@ -353,6 +356,28 @@ def run_filter(
                      x_final=x, P_final=P, k_sigma_ratio=k_ratio, dof=dof, gated=gated,
                      inconsistent_step=inc_step, inconsistent_reason=inc_reasons, state_dim=n,
                      axis_err=ax_err, axis_sigma=ax_sig)  # fmt: skip
+
+
+def _step_features(y_feat: Array, visible: Array, kept: Array | None, k: int) -> tuple[Array, Array, Array | None]:
+    """``(vis (N,), y (B, N, C), feature_mask (B, n_vis) or None)`` of step ``k`` for ``relnav.StepMeasurement``.
+
+    Shared visibility ``(K+1, N)``: its row ``k``, the measurements as they are and the tracker's ``kept``.
+    Per-trial visibility ``(B, K+1, N)``: the features any trial sees; a trial's mask is its own visibility
+    and its ``kept``, and the measurements of the features it does not see are set to 0 (a masked row's
+    ``h`` is its ``y``: a finite value, so that nothing non-finite enters through ``0 * y``).
+    """
+    y = y_feat[:, k]
+    if visible.ndim == 2:
+        vis = visible[k]
+        return vis, y, None if kept is None else kept[:, k][:, vis]
+    own = visible[:, k]
+    vis = own.any(axis=0)
+    mask = own if kept is None else own & kept[:, k]
+    if not own[:, vis].all():
+        y = np.where(own[..., None], y, 0.0)
+    elif kept is None:
+        mask = None
+    return vis, y, None if mask is None else mask[:, vis]
 
 
 def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> tuple[Array, Array]:
