@@ -19,9 +19,8 @@ For a scenario with ``dispersions``, trial ``j``:
    (``truth_initial_state.*``, ``target.*``) with ``applies_to: both``, plus the
    ``N(0, P0)`` error. Trials whose filter models agree run as one batch (all of them,
    unless the camera, orbit or noise levels are dispersed with ``applies_to: both``),
-   each with its own visibility (``trial.run_filter``: the update stacks the features any
-   trial of the batch sees and masks, per trial, those it does not; the same numbers as
-   the trial run alone, to round-off).
+   each with its own visibility (``trial.run_filter``: at each step, one update per pattern
+   of visible features; the same numbers as the trial run alone).
 """
 
 from __future__ import annotations

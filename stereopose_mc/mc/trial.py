@@ -199,8 +199,7 @@ def run_filter(
     """Run one filter over a chunk of trials.
 
     ``y_feat (B, K+1, N, C)``, ``alpha (B, K+1, 3)``, ``visible (K+1, N)`` shared or ``(B, K+1, N)`` per trial
-    (a dispersed target: the update stacks the features any trial sees and masks, per trial, those it does
-    not, as it masks the ones the tracker dropped); ``kept (B, K+1, N)``
+    (a dispersed target: ``_update``); ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
     holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
     ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n)``: told of
@@ -263,7 +262,6 @@ def run_filter(
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
             xa, Pa = stepper.predict(x_act, P_act, truth.t[k - 1], fs, setup)
-        vis, y_k, mask_k = _step_features(y_feat, visible, kept, k)
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
         pseudo_k = setup.pseudo and bool(np.isfinite(a_k[active]).all())  # False during the warm-up
@@ -277,17 +275,12 @@ def run_filter(
                 alpha_var = np.full((B, 3), fs.sigma_alpha**2)
             with np.errstate(all="ignore"):
                 alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
-        step = relnav.StepMeasurement(
-            y=relnav.stack_measurement(y_k, vis, setup_k.pseudo), alpha=np.nan_to_num(a_k), visible=vis,
-            t=truth.t[k], alpha_var=alpha_var, feature_mask=mask_k,
-        )
+        measured = StepData(y_feat[:, k], np.nan_to_num(a_k), truth.t[k], alpha_var)
         with np.errstate(all="ignore"):
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
             x_true_k = x_true_all if x_true_all.ndim == 1 else x_true_all[active]
-            update = stepper.update
-            if kernels == "compiled":  # the update evaluates the posteriors' NEES against the truth, in cache
-                update = functools.partial(update, x_true=x_true_all)
-            u, failed = _robust_update(xa, Pa, step, active, fs, setup_k, update)
+            u, failed = _update(stepper.update, kernels, xa, Pa, active, measured, visible, kept, k, x_true_all, fs,
+                                setup_k)  # fmt: skip
             e = errors_of(u.x, x_true_k, kernels)
             try:
                 v, pd = _posterior_nees(u, x_true_k, chart, kernels)
@@ -358,26 +351,50 @@ def run_filter(
                      axis_err=ax_err, axis_sigma=ax_sig)  # fmt: skip
 
 
-def _step_features(y_feat: Array, visible: Array, kept: Array | None, k: int) -> tuple[Array, Array, Array | None]:
-    """``(vis (N,), y (B, N, C), feature_mask (B, n_vis) or None)`` of step ``k`` for ``relnav.StepMeasurement``.
+@dataclass(frozen=True)
+class StepData:
+    """What every trial of a chunk measured at one step (``_update`` makes the ``relnav.StepMeasurement``)."""
 
-    Shared visibility ``(K+1, N)``: its row ``k``, the measurements as they are and the tracker's ``kept``.
-    Per-trial visibility ``(B, K+1, N)``: the features any trial sees; a trial's mask is its own visibility
-    and its ``kept``, and the measurements of the features it does not see are set to 0 (a masked row's
-    ``h`` is its ``y``: a finite value, so that nothing non-finite enters through ``0 * y``).
+    y: Array  # (B, N, C) every feature's measurement
+    alpha: Array  # (B, 3) measured angular acceleration (0 where not available)
+    t: float
+    alpha_var: Array | None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
+
+
+def _update(update, kernels: str, xa: Array, Pa: Array, active: Array, measured: StepData, visible: Array,
+            kept: Array | None, k: int, x_true: Array, fs: FilterSetup, setup: Setup):  # fmt: skip
+    """``_robust_update`` of the priors ``xa, Pa`` of the trials ``active`` at step ``k``.
+
+    Shared visibility ``(K+1, N)``: one update of them all. Per-trial visibility ``(B, K+1, N)`` (a
+    dispersed target): one update per pattern of visible features among them, each trial's with exactly
+    the features it sees (the same as the trial run alone, at the cost of its own features: a stack of
+    the features any trial sees, masked per trial, costs that of the whole stack for every trial),
+    merged in ``active``'s order. ``kernels == 'compiled'``: the update also evaluates the posteriors'
+    NEES against ``x_true`` (``(n,)`` shared or ``(B, n)``), in cache.
     """
-    y = y_feat[:, k]
-    if visible.ndim == 2:
-        vis = visible[k]
-        return vis, y, None if kept is None else kept[:, k][:, vis]
-    own = visible[:, k]
-    vis = own.any(axis=0)
-    mask = own if kept is None else own & kept[:, k]
-    if not own[:, vis].all():
-        y = np.where(own[..., None], y, 0.0)
-    elif kept is None:
-        mask = None
-    return vis, y, None if mask is None else mask[:, vis]
+    groups = [(visible[k], None)] if visible.ndim == 2 else _patterns(visible[active, k])
+    parts = []
+    for vis, j in groups:
+        sel, rows = (slice(None), active) if j is None else (active[j], np.arange(j.size))
+        step = relnav.StepMeasurement(
+            y=relnav.stack_measurement(measured.y[sel], vis, setup.pseudo), alpha=measured.alpha[sel], visible=vis,
+            t=measured.t, alpha_var=None if measured.alpha_var is None else measured.alpha_var[sel],
+            feature_mask=None if kept is None else kept[sel, k][:, vis],
+        )  # fmt: skip
+        f = update
+        if kernels == "compiled":
+            f = functools.partial(update, x_true=x_true if x_true.ndim == 1 else x_true[sel])
+        if j is None:
+            return _robust_update(xa, Pa, step, rows, fs, setup, f)
+        parts.append((j, *_robust_update(xa[j], Pa[j], step, rows, fs, setup, f)))
+    return _merge(parts, active.size)
+
+
+def _patterns(visible: Array) -> list[tuple[Array, Array]]:
+    """``(pattern (N,), positions)`` of each distinct row of ``visible (b, N)``."""
+    pats, inverse = np.unique(visible, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    return [(pats[c], np.flatnonzero(inverse == c)) for c in range(pats.shape[0])]
 
 
 def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude") -> tuple[Array, Array]:
@@ -504,20 +521,40 @@ _OPTIONAL = {"P_factor": lambda u: u.P.shape, "nees": lambda u: (u.P.shape[0], 8
 
 
 def _concatenate(updates: list):
-    """The updates of consecutive parts of a batch as one (MEKF/UKF updates carry no gate counts: the fields all
-    parts have). ``P_factor``, ``nees`` and ``nees_pd`` (given by the compiled update only) are NaN for the parts
-    without them, None if no part has them."""
+    """The updates of consecutive parts of a batch as one (``_merge``)."""
+    ends = np.cumsum([0] + [u.x.shape[0] for u in updates])
+    return _merge([(np.arange(a, b), u, []) for a, b, u in zip(ends, ends[1:], updates)], int(ends[-1]))[0]
+
+
+def _merge(parts: list, b: int):
+    """``(update, reasons)`` of a batch of ``b`` trials from ``(positions, update, reasons)`` of its parts.
+
+    MEKF/UKF updates carry no gate counts: the fields all parts have. ``P_factor``, ``nees`` and ``nees_pd``
+    (given by the compiled update only) are NaN for the parts without them, None if no part has them. The
+    innovations ``nu`` of parts with fewer rows are padded with NaN."""
+    updates = [u for _, u, _ in parts]
     cls = relnav.GatedUpdate if all(isinstance(u, relnav.GatedUpdate) for u in updates) else kf.Update
     out = {}
     for f in dataclasses.fields(cls):
-        parts = [getattr(u, f.name) for u in updates]
+        vals = [getattr(u, f.name) for u in updates]
         if f.name in _OPTIONAL:
-            if all(p is None for p in parts):
+            if all(v is None for v in vals):
                 out[f.name] = None
                 continue
-            parts = [np.full(_OPTIONAL[f.name](u), np.nan) if p is None else p for u, p in zip(updates, parts)]
-        out[f.name] = np.concatenate(parts)
-    return cls(**out)
+            vals = [np.full(_OPTIONAL[f.name](u), np.nan) if v is None else v for u, v in zip(updates, vals)]
+        tail = tuple(max(d) for d in zip(*(v.shape[1:] for v in vals)))
+        if all(v.shape[1:] == tail for v in vals):
+            a = np.empty((b,) + tail, np.result_type(*vals))
+        else:
+            a = np.full((b,) + tail, np.nan)
+        for (j, _, _), v in zip(parts, vals):
+            a[(j,) + tuple(slice(0, d) for d in v.shape[1:])] = v
+        out[f.name] = a
+    reasons = [""] * b
+    for j, _, why in parts:
+        for i, r in zip(j.tolist(), why):
+            reasons[i] = r
+    return cls(**out), reasons
 
 
 def nees_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude", kernels: str = "numpy") -> dict[str, Array]:

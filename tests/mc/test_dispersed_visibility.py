@@ -1,9 +1,8 @@
 """Dispersed mesh targets: each trial's own visibility inside one batch.
 
 A dispersed attitude gives every trial its own self-occlusion pattern. ``mc.dispersed`` runs
-the trials of one filter model as one batch: the update stacks the features any trial sees
-and masks, per trial, those it does not (``mc.trial._step_features``). Reference: the same
-trials run alone (a chunk of one trial has its own visibility as the stacked set, no mask).
+the trials of one filter model as one batch: at each step, one update per pattern of visible
+features among them (``mc.trial._update``). Reference: the same trials run alone.
 """
 
 from __future__ import annotations
