@@ -236,7 +236,7 @@ def run_filter(
     _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
     ax_err = np.full((B, K + 1, len(AXES)), np.nan)
     ax_sig = np.full((B, K + 1, len(AXES)), np.nan)
-    ax_err[:, 0], ax_sig[:, 0] = axis_errors(x, P, true_state(truth.x, 0, np.arange(B)), chart)
+    ax_err[:, 0], ax_sig[:, 0] = axis_errors_of(x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
     # angular-acceleration source (docs/angular-acceleration.md): history of the filter's own
     # posterior omega and its variance, newest last; sample 0 is the initial estimate
     src = alpha_source_of(setup, fs)
@@ -294,7 +294,7 @@ def run_filter(
         w_hist = np.concatenate([w_hist[:, 1:], w_last[:, None]], axis=1)  # push the posterior at t_k
         v_hist = np.concatenate([v_hist[:, 1:], v_last[:, None]], axis=1)
         err[active, k] = e
-        ax_err[active, k], ax_sig[active, k] = axis_errors(u.x, u.P, x_true_k, chart)
+        ax_err[active, k], ax_sig[active, k] = axis_errors_of(u.x, u.P, x_true_k, chart, kernels)
         its[active, k], conv[active, k] = u.iterations, u.converged
         if getattr(u, "features_used", None) is not None:
             dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
@@ -420,6 +420,17 @@ def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude"
         else:
             var = np.sum((M @ P) * M, axis=-1)  # diag(M P M^T) by one BLAS product
         return eps * _AXIS_SCALE, np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
+
+
+def axis_errors_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
+                   kernels: str = "numpy") -> tuple[Array, Array]:  # fmt: skip
+    """``axis_errors`` on the ``kernels`` path: numpy, or the compiled ``core.kernels.axes.axis_errors`` (the same
+    numbers to round-off: tests/core/test_kernels_axes.py)."""
+    if kernels == "compiled":
+        from ..core.kernels import axes
+
+        return axes.axis_errors(x, P, x_true, error_state, _AXIS_SCALE)
+    return axis_errors(x, P, x_true, error_state)
 
 
 def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:

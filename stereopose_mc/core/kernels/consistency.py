@@ -314,6 +314,20 @@ def _attitude_rows(xh, N, D, vh, cnt, cols, vals, Wp):
 
 
 @njit(**_JIT)
+def _point_rows_sum(P, N, Sp):
+    """``Sp[c] = sum_i P[12 + 3 i + c]`` (``(3, n-1)``): the point rows of ``P`` summed (``_block_points``)."""
+    ne = Sp.shape[1]
+    for c in range(ne):
+        Sp[0, c] = 0.0
+        Sp[1, c] = 0.0
+        Sp[2, c] = 0.0
+    for i in range(N):
+        for a in range(3):
+            for c in range(ne):
+                Sp[a, c] += P[E_POINTS + VEC * i + a, c]
+
+
+@njit(**_JIT)
 def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf, given):
     n = xh.shape[0]
     ne = n - 1
@@ -345,14 +359,7 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
     out[1] = _dot(w, w, 0, ne)
     _estimation_error(xh, xt, nh, nt, eps, tmp, dq)
     _attitude_rows(xh, N, D, v3[2], cnt, cols, vals, Wp)
-    for c in range(ne):
-        Sp[0, c] = 0.0
-        Sp[1, c] = 0.0
-        Sp[2, c] = 0.0
-    for i in range(N):
-        for a in range(3):
-            for c in range(ne):
-                Sp[a, c] += P[E_POINTS + VEC * i + a, c]
+    _point_rows_sum(P, N, Sp)
     for b in range(6):
         p1 = E_POINTS + VEC * N
         lo = (E_RHO, E_RHO_DOT, E_OMEGA, E_ROT, E_POINTS, p1)[b]
