@@ -663,3 +663,26 @@ def test_kernel_cache_stamp_covers_the_core_modules_the_kernels_import(tmp_path)
     assert [p.name for p in _cache.core_dependencies(kernels)] == ["layout.py", "other.py"]
     (tmp_path / "core" / "other.py").write_text("X = 3\n")
     assert _cache.package_stamp(kernels) not in (s0, s1, s2)
+
+
+def test_kernel_cache_finds_the_core_imports_as_a_whole_parse_does(tmp_path):
+    """``_cache`` finds the ``from ..`` imports by their lines (one statement parsed at a time, not the modules):
+    the same imports as ``ast.walk`` of each whole module, for the package and for the forms it must handle."""
+    import ast
+
+    from stereopose_mc.core.kernels import _cache
+
+    def whole(src: bytes):
+        return sorted((n.module or "", tuple(a.name for a in n.names)) for n in ast.walk(ast.parse(src))
+                      if isinstance(n, ast.ImportFrom) and n.level == 2)  # fmt: skip
+
+    def by_lines(src: bytes):
+        return sorted((n.module or "", tuple(a.name for a in n.names)) for n in _cache._imports_from_parent(src))
+
+    for p in _cache.source_files():
+        assert by_lines(p.read_bytes()) == whole(p.read_bytes()), p.name
+    forms = (b"from ..layout import (A,\n    B)  # two lines\nfrom .. import x, y\nfrom . import z\n"
+             b"def f():\n    from ..other import C\n    from ...far import D\n")  # fmt: skip
+    assert by_lines(forms) == whole(forms) == [("", ("x", "y")), ("layout", ("A", "B")), ("other", ("C",))]
+    in_string = b'"""\nfrom .. import (\n"""\nfrom ..layout import Q\n'  # a candidate that does not parse alone
+    assert by_lines(in_string) == whole(in_string) == [("layout", ("Q",))]
