@@ -121,7 +121,7 @@ class FilterRun:
     errors: Array  # (B, K+1, 6); NaN after divergence
     nees: Array  # (B, K+1)
     nis: Array  # (B, K+1); NaN at step 0
-    nis_dof: Array  # (K+1,) measurement dimension
+    nis_dof: Array  # (K+1,) measurement dimension, or (B, K+1) with per-trial visibility (dispersed targets)
     iterations: Array  # (B, K+1) int; 0 at step 0
     converged: Array  # (B, K+1) bool
     lost_step: Array  # (B,) int, -1 if not lost (the filter stopped there)
