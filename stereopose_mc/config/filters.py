@@ -54,6 +54,7 @@ class FilterSetup:
     taylor_order: int
     substeps: int
     gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
+    gate_inflate: bool = False  # the gate's covariance inflation when it would reject most features (gating.py)
     error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
     pseudo_second_order: bool = True  # the pseudo rows' R adds their linearization's variance (core.inertia)
 
@@ -129,6 +130,12 @@ class GatingConfig(_Model):
 
     probability: Annotated[float, Field(gt=0, lt=1)] = Field(
         default=0.999, description="probability that a correct feature passes the gate"
+    )
+    inflate: bool = Field(
+        default=True,
+        description="when the gate would reject at least half of a step's features, take it as the filter's "
+        "overconfidence, not as that many outliers: scale the prior covariance by the innovations' robust "
+        "(median) excess over chi-square and gate again (docs/filters.md, Gating)",
     )
 
 

@@ -162,6 +162,7 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         taylor_order=f.taylor_order,
         substeps=f.integration_substeps,
         gate_probability=None if f.gating is None else f.gating.probability,
+        gate_inflate=f.gating is not None and f.gating.inflate,
         error_state=f.error_state,
         pseudo_second_order=f.pseudo_linearization == "second_order",
     )

@@ -350,7 +350,8 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
 
         hx, H = linearized(x, alpha, vis, setup, nd, ndd, chart, ne)
         d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
-        keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
+        keep, rejected, lam = gating.robust_gate(d2, fs.gate_probability, C, keep, fs.gate_inflate)
+        P = gating.inflated(P, lam)
     if keep is not None:
         used = keep.sum(axis=-1)
     mask = ones if keep is None else _row_mask(keep, b, m, C)

@@ -78,6 +78,54 @@ def gate(d2: Array, probability: float, channels: int, keep: Array | None = None
     return prior & ok, np.sum(prior & ~ok, axis=-1)
 
 
+LOCKOUT_FRACTION = 0.75  # inflate when the gate would reject at least this share of the features offered
+
+
+@functools.lru_cache(maxsize=16)
+def chi2_median(dof: int) -> float:
+    """The median of chi-square with ``dof`` degrees of freedom, ``2 P^-1(dof/2, 1/2)``."""
+    from scipy.special import gammaincinv
+
+    return float(2.0 * gammaincinv(0.5 * dof, 0.5))
+
+
+def robust_gate(d2: Array, probability: float, channels: int, keep: Array | None = None,
+                inflate: bool = True) -> tuple[Array, Array, Array]:  # fmt: skip
+    """``(keep, rejected, lam)``: ``gate``, and where it would reject at least ``LOCKOUT_FRACTION`` of a trial's
+    offered features, the same gate on ``d2 / lam`` with
+
+        lam = max(1, median_f(d2_f) / median(chi2_C))
+
+    the innovations' robust excess over their claimed covariance (the median ignores up to half of the
+    features being outliers). A correct filter meets this with probability far below ``1 - probability``
+    per feature; a filter briefly overconfident (its prior ``P`` too small) meets it at every step, and
+    without it would reject every feature until it is lost (a gate lock-out). The update then uses the
+    prior ``lam P`` (fading memory: the covariance the innovations say it has), which ``lam`` returns
+    (``1`` where nothing changed; ``inflate`` False: always ``1``, the plain gate).
+    """
+    kept, rejected = gate(d2, probability, channels, keep)
+    lam = np.ones(d2.shape[0])
+    if not inflate:
+        return kept, rejected, lam
+    offered = np.ones_like(kept) if keep is None else keep
+    n = offered.sum(axis=-1)
+    lock = np.flatnonzero((n > 0) & (rejected >= LOCKOUT_FRACTION * n))
+    if lock.size:
+        med = np.array([np.median(d2[i][offered[i]]) for i in lock])
+        lam[lock] = np.maximum(1.0, med / chi2_median(channels))
+        k2, r2 = gate(d2[lock] / lam[lock, None], probability, channels, offered[lock])
+        kept, rejected = kept.copy(), rejected.copy()
+        kept[lock], rejected[lock] = k2, r2
+    return kept, rejected, lam
+
+
+def inflated(P: Array, lam: Array) -> Array:
+    """``lam P`` per trial (``P`` itself when every ``lam`` is 1)."""
+    if np.all(lam == 1.0):
+        return P
+    return P * lam[:, None, None]
+
+
 def masked_measure(measure, y: Array, rows: Array, keep: Array, channels: int):
     """``measure`` with the rows of the features not in ``keep (b, F)`` taken out of the update.
 

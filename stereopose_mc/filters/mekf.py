@@ -91,6 +91,6 @@ def update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, fs: Fi
     ch = chart_of(fs)
     e0 = np.zeros(P.shape[:-1])
     measure = error_measurement((model or relnav.measurement_model)(setup, step), x, rows, ch)
-    measure, R, y, rejected, used = relnav.gated_model(e0, P, measure, step, rows, fs, setup)
+    measure, R, y, rejected, used, P = relnav.gated_model(e0, P, measure, step, rows, fs, setup)
     u = relnav.kalman_update(e0, P, y, measure, R, rows, fs, setup, step)
     return relnav.GatedUpdate(ch.chart(x, u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)

@@ -147,13 +147,14 @@ def update(x: Array, P: Array, step: StepMeasurement, rows: Array, fs: FilterSet
     ``model(setup, step)``: the step's ``measure`` (default ``measurement_model``; ``filters.compiled`` passes its
     compiled twin when it leaves a trial to this update)."""
     measure = (model or measurement_model)(setup, step)
-    measure, R, y, rejected, used = gated_model(x, P, measure, step, rows, fs, setup)
+    measure, R, y, rejected, used, P = gated_model(x, P, measure, step, rows, fs, setup)
     u = kalman_update(x, P, y, measure, R, rows, fs, setup, step)
     return GatedUpdate(renormalize(u.x), u.P, u.nu, u.nis, u.iterations, u.converged, rejected, used)
 
 
 def gated_model(x: Array, P: Array, measure, step: StepMeasurement, rows: Array, fs: FilterSetup, setup: Setup):
-    """``(measure, R, y, rejected, used)`` after the tracker's feature mask and the filter's gate.
+    """``(measure, R, y, rejected, used, P)`` after the tracker's feature mask and the filter's gate (``P`` the
+    prior the update uses: inflated where the gate found the filter overconfident, ``gating.robust_gate``).
 
     ``measure(x, rows, jac)`` is the step's model in the filter's own coordinates (the full
     state, or an error state with ``x`` its zero and ``P`` its covariance).
@@ -167,11 +168,12 @@ def gated_model(x: Array, P: Array, measure, step: StepMeasurement, rows: Array,
     if fs.gate_probability is not None and nvis:
         hx, H = measure(x, rows, jac=True)
         d2 = gating.distances2(y - hx, gating.linearized_blocks(H, P, R, nvis, C))
-        keep, rejected = gating.gate(d2, fs.gate_probability, C, keep)
+        keep, rejected, lam = gating.robust_gate(d2, fs.gate_probability, C, keep, fs.gate_inflate)
+        P = gating.inflated(P, lam)
     if keep is not None:
         measure = gating.masked_measure(measure, step.y, rows, keep, C)
     used = np.full(rows.size, nvis) if keep is None else keep.sum(axis=-1)
-    return measure, R, y, rejected, used
+    return measure, R, y, rejected, used, P
 
 
 def first_update(setup: Setup, step: StepMeasurement) -> bool:

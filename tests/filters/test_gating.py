@@ -127,3 +127,48 @@ def test_masked_update_equals_the_update_without_those_rows(kind):
         np.testing.assert_allclose(u.x[i], ref.x[0], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(u.P[i], ref.P[0], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(u.nis[i], ref.nis[0], rtol=1e-9)
+
+
+def test_chi2_median_is_the_quantile():
+    for dof in (1, 2, 4, 8):
+        assert gating.chi2_median(dof) == pytest.approx(stats.chi2.median(dof), rel=1e-12)
+
+
+def test_robust_gate_leaves_a_consistent_filter_alone():
+    """Innovations drawn from the claimed S: no trial meets the lock-out condition, so the robust gate is the
+    plain gate and the prior is not inflated."""
+    b = 2000
+    _, H, P, R, x, y = linear_problem(b, seed=4)
+    d2 = gating.distances2(y - np.einsum("bij,bj->bi", H, x), gating.linearized_blocks(H, P, R, F, C))
+    keep, rejected, lam = gating.robust_gate(d2, 0.999, C)
+    k0, r0 = gating.gate(d2, 0.999, C)
+    np.testing.assert_array_equal(keep, k0)
+    np.testing.assert_array_equal(rejected, r0)
+    np.testing.assert_array_equal(lam, np.ones(b))
+
+
+def test_robust_gate_recovers_the_scale_of_an_overconfident_prior():
+    """A filter whose P is 50x too small (the truth drawn from 50 P): the plain gate rejects most features of most
+    trials (a lock-out); the robust gate estimates lam ~ 50 x (the HPH^T share of S) from the median, keeps the
+    features (one outlier of six per trial is still rejected), and ``inflated`` scales P by it."""
+    rng = np.random.default_rng(9)
+    b, s2 = 400, 50.0
+    H = rng.normal(size=(b, F * C, n))
+    A = rng.normal(size=(b, n, n))
+    P = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+    R = np.full(F * C, 1e-3)  # R small against H P H^T: S scales as P does
+    x = rng.normal(size=(b, n))
+    x_true = x + np.einsum("bij,bj->bi", np.linalg.cholesky(s2 * P), rng.normal(size=(b, n)))
+    y = np.einsum("bij,bj->bi", H, x_true) + np.sqrt(R) * rng.normal(size=(b, F * C))
+    y[:, :C] += 1e3  # feature 0 of every trial: an outlier
+    d2 = gating.distances2(y - np.einsum("bij,bj->bi", H, x), gating.linearized_blocks(H, P, R, F, C))
+    _, r_plain = gating.gate(d2, 0.999, C)
+    keep, rejected, lam = gating.robust_gate(d2, 0.999, C)
+    locked = r_plain >= gating.LOCKOUT_FRACTION * F
+    assert locked.mean() > 0.5
+    assert np.median(lam[locked]) == pytest.approx(s2, rel=0.35)
+    assert np.all(~keep[locked, 0])  # the outlier stays out
+    assert np.mean(keep[locked, 1:]) > 0.9
+    _, _, lam_off = gating.robust_gate(d2, 0.999, C, inflate=False)
+    np.testing.assert_array_equal(lam_off, np.ones(b))
+    np.testing.assert_allclose(gating.inflated(P, lam)[locked], P[locked] * lam[locked, None, None])
