@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from scipy.stats import binomtest
+
 from stereopose_mc import api
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -36,29 +38,23 @@ def test_case_b_iekf_stays_on_track_and_consistent(tmp_path):
     assert kept["inside_3sigma"].median() >= 0.95
 
 
-@pytest.mark.slow
-def test_case_b_with_outliers_gated_iekf_stays_on_track(tmp_path):
-    run = api.run(api.load(CONFIGS / "caseB-outliers.yaml"), trials=100, out=tmp_path / "outliers")
-    t = run.trials
-    gated = t[t["filter"] == "iekf_gated"]
-    assert len(gated) == 100
-    assert int(gated["lost"].sum()) <= 5, gated.loc[gated["lost"], "lost_reason"].tolist()
+# (scenario, filter label, trials, most trials lost): the targets of the issues that met them, at a trial count the
+# suite affords; what each loses today is in the module docstring
+LOST = [
+    ("caseB-outliers", "iekf_gated", 100, 5),
+    ("mission-realistic", "iekf", 50, 2),
+    ("mission-debris", "iekf", 100, 5),
+]
 
 
 @pytest.mark.slow
-def test_mission_realistic_iekf_stays_on_track(tmp_path):
-    run = api.run(api.load(CONFIGS / "mission-realistic.yaml"), trials=50, out=tmp_path / "realistic")
+@pytest.mark.parametrize(("scenario", "label", "trials", "most"), LOST, ids=[r[0] for r in LOST])
+def test_filter_stays_on_track(tmp_path, scenario, label, trials, most):
+    run = api.run(api.load(CONFIGS / f"{scenario}.yaml"), trials=trials, out=tmp_path / scenario)
     t = run.trials
-    assert len(t) == 50
-    assert int(t["lost"].sum()) <= 2, t.loc[t["lost"], "lost_reason"].tolist()
-
-
-@pytest.mark.slow
-def test_mission_debris_iekf_stays_on_track(tmp_path):
-    """configs/mission-debris.yaml (dispersed tumble, inertia, geometry, range; 100 trials): the IEKF loses at
-    most 5 (it loses 3; 18 of 500 in docs/sensitivity.md)."""
-    run = api.run(api.load(CONFIGS / "mission-debris.yaml"), trials=100, out=tmp_path / "debris")
-    t = run.trials
-    iekf = t[t["filter"] == "iekf"]
-    assert len(iekf) == 100
-    assert int(iekf["lost"].sum()) <= 5, iekf.loc[iekf["lost"], "lost_reason"].tolist()
+    f = t[t["filter"] == label]
+    assert len(f) == trials
+    lost = int(f["lost"].sum())
+    ci = binomtest(lost, trials).proportion_ci(0.95, method="wilson")
+    assert lost <= most, (f"{lost} of {trials} lost (95% interval {ci.low:.1%}-{ci.high:.1%})",
+                          f.loc[f["lost"], "lost_reason"].tolist())  # fmt: skip
