@@ -15,7 +15,7 @@ from ..mc import engine
 from ..rundir.store import RunDirError
 from .errors import SpmcError
 from .runs import KERNELS, Run, _options
-from .scenarios import _sweep, as_scenario, edit
+from .scenarios import _sweep, as_scenario
 
 if TYPE_CHECKING:  # imported where used: studies.sweep and studies.tuning import pandas (~0.25 s)
     import pandas as pd
@@ -124,24 +124,36 @@ def sweep(scenario: str | Path, sets: Sets | None = None, *, out: str | Path, zi
 
 @dataclass(frozen=True)
 class Tuning:
-    """A tuned filter: before/after statistics, the tuned entry and the scenario that uses it."""
+    """A tuned filter: before/after statistics on the tuning and the held-back trials, the tuned entry and the
+    scenario that uses it."""
 
     filter: str
     result: tuning.TuneResult
-    entry: dict[str, Any]  # the filter entry with the tuned process_noise (YAML-ready)
-    scenario: Scenario  # the input scenario with that filter's process_noise replaced
+    entry: dict[str, Any]  # the filter entry with the tuned process_noise (and measurement_noise), YAML-ready
+    scenario: Scenario  # the input scenario with that filter's Q / R and (if tuned) the initial_covariance replaced
 
     @property
     def table(self) -> pd.DataFrame:
-        """Before / after: median NEES/dof per block, NIS/dof, median errors, lost trials, cost."""
+        """Before / after on the tuning trials: trials, lost, inconsistent, median NEES/dof per block, NIS/dof,
+        median errors, cost."""
         from ..studies import tuning
 
-        return tuning.comparison_table(self.result)
+        return tuning.comparison_table(self.result.before, self.result.after)
+
+    @property
+    def check(self) -> pd.DataFrame | None:
+        """The same table on the held-back trials (None with ``check_trials=0``)."""
+        from ..studies import tuning
+
+        r = self.result
+        return None if r.check_before is None else tuning.comparison_table(r.check_before, r.check_after)
 
     @property
     def yaml(self) -> str:
-        """``filters: [entry]`` as YAML, to paste into a scenario file."""
-        return yaml.safe_dump({"filters": [self.entry]}, sort_keys=False)
+        """``filters: [entry]`` (and ``initial_covariance:`` when P0 was tuned) as YAML, to paste into a scenario."""
+        from ..studies import tuning
+
+        return yaml.safe_dump(tuning.tuned_yaml_data(self.filter, self.result), sort_keys=False)
 
 
 def _kernels(kernels: str | None) -> str:
@@ -152,13 +164,16 @@ def _kernels(kernels: str | None) -> str:
 
 def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, trials: int = 30,
          max_evaluations: int = 40, out: str | Path | None = None, kernels: str | None = None,
+         space: str | Sequence[str] = "q", check_trials: int | None = None,
          progress: Callable[[int, tuning.Evaluation, str], None] | None = None) -> Tuning:  # fmt: skip
-    """Tune the Q block scales of the filter labelled ``filter`` so its NEES and NIS are consistent.
+    """Tune the filter labelled ``filter`` (its Q blocks; with ``space`` also its R and the scenario's P0:
+    ``"q,r,p0"``) so its NEES and NIS are consistent, on the trials ``spmc run`` would run.
 
     Every evaluation runs the same ``trials`` trials (at least 2), at most ``max_evaluations``
-    of them (docs/filters.md, Tuning). ``out``: also write the tuned entry there as YAML.
-    ``progress(i, evaluation, what)`` is called after each evaluation. ``kernels``: as :func:`run`'s
-    (default ``compiled``).
+    of them; the start and the result are then compared on ``check_trials`` held-back trials
+    (default ``trials``; trial indices ``trials … trials+check_trials-1``; 0: none) (docs/filters.md,
+    ``spmc tune``). ``out``: also write the tuned entry there as YAML. ``progress(i, evaluation, what)``
+    is called after each evaluation. ``kernels``: as :func:`run`'s (default ``compiled``).
     """
     from ..studies import tuning
 
@@ -171,13 +186,12 @@ def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, tr
     if out is not None and (out.is_dir() or not out.parent.exists()):
         raise SpmcError(f"{out}: --out must be a file in an existing directory")
     try:
-        res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress, kernels=_kernels(kernels))
+        res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress, kernels=_kernels(kernels),
+                          space=space, check_trials=check_trials)  # fmt: skip
     except tuning.TuneError as exc:
         where = scn.name if isinstance(scenario, (Scenario, Mapping)) else str(scenario)
         raise SpmcError(f"{where}: {exc}") from None
-    entry = tuning.tuned_entry(scn, filter, res)
-    index = next(i for i, f in enumerate(scn.filters) if f.label == filter)
-    t = Tuning(filter, res, entry, edit(scn, {f"filters[{index}].process_noise": entry["process_noise"]}))
+    t = Tuning(filter, res, tuning.tuned_entry(scn, filter, res), res.scenario)
     if out is not None:
         out.write_text(t.yaml)
     return t
