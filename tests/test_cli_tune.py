@@ -57,6 +57,20 @@ def test_tune_bad_input_exits_2(mistuned, tmp_path):
     assert r.exit_code == 2
     r = runner.invoke(app, ["tune", str(mistuned), "--filter", "iekf", "--kernels", "fast"])
     assert r.exit_code == 2 and "--kernels must be numpy or compiled" in r.output
+    r = runner.invoke(app, ["tune", str(mistuned), "--filter", "iekf", "--tune", "q,x"])
+    assert r.exit_code == 2 and "--tune: unknown 'x'" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["tune", str(mistuned), "--filter", "iekf", "--check-trials", "-1"])
+    assert r.exit_code == 2 and "--check-trials" in r.output
+
+
+def test_tune_prints_the_held_back_check_and_the_tuned_blocks(mistuned, tmp_path):
+    out = tmp_path / "tuned.yaml"
+    r = runner.invoke(app, ["tune", str(mistuned), "--filter", "iekf", "--trials", "3", "--check-trials", "2",
+                            "--tune", "q,r,p0_all", "--max-evaluations", "2", "--out", str(out), "-q"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert "# tuning trials 0-2" in r.output and "# held-back trials 3-4" in r.output
+    data = yaml.safe_load(out.read_text())
+    assert set(data) == {"filters", "initial_covariance"} and "measurement_noise" in data["filters"][0]
 
 
 def test_tune_evaluations_agree_on_both_kernels(mistuned):

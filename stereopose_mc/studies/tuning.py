@@ -85,6 +85,7 @@ class Evaluation:
     inconsistent: int = 0
     trials: int = 0
     cost: float = float("nan")
+    trial_ids: tuple[int, ...] = ()  # the trial indices counted
 
     @property
     def process_noise(self) -> dict[str, float]:
@@ -201,7 +202,8 @@ def _evaluate(scn: Scenario, label: str, params: dict[str, float], trials: np.nd
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         nis = med("nis_ratio_mean")
-    return Evaluation(dict(params), nees, nis, errs, int((~ok).sum()), int(df["inconsistent"].sum()), len(df))
+    return Evaluation(dict(params), nees, nis, errs, int((~ok).sum()), int(df["inconsistent"].sum()), len(df),
+                      trial_ids=tuple(int(t) for t in df["trial"]))  # fmt: skip
 
 
 def _cost(ev: Evaluation, ref: Evaluation, trials: int) -> float:
