@@ -14,7 +14,7 @@ from .app import KERNELS_HELP, app, fail
 def tune(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     filter_label: str = typer.Option(..., "--filter", help="label of the filter entry to tune (its name or type)"),
-    trials: int = typer.Option(30, "--trials", help="tuning trials per evaluation: trials 0..N-1 (the same every time)"),
+    trials: int = typer.Option(30, "--trials", help="tuning trials per evaluation: 0..N-1 (the same every time)"),
     check_trials: Optional[int] = typer.Option(
         None, "--check-trials", help="held-back trials N..N+M-1 for the before/after check (default N; 0: none)"
     ),
@@ -23,15 +23,17 @@ def tune(
         "image and flow sigmas) or r_image / r_flow (each alone), p0 (a factor per initial_covariance block) or "
         "p0_all (one factor)",
     ),  # fmt: skip
-    out: Optional[Path] = typer.Option(None, "--out", help="write the tuned filter entry (YAML) here"),
+    out: Optional[Path] = typer.Option(
+        None, "--out", help="write the tuned filter entry (and initial_covariance, if tuned) as YAML here"
+    ),
     max_evaluations: int = typer.Option(40, "--max-evaluations", help="budget of Monte Carlo evaluations"),
     kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
 ) -> None:
     """Tune one filter's Q (and R, P0) so its NEES and NIS are consistent, then check on held-back trials.
 
-    Every evaluation runs the trials `spmc run --trials N+M` runs (dispersions, truth model, faults, gating,
-    the measurement-based start), see docs/filters.md, `spmc tune`.
+    Every evaluation runs the trials `spmc run --trials N+M` runs (dispersions, truth model, faults, gating, \
+the measurement-based start); docs/filters.md, `spmc tune`.
     """
     from .. import api
 

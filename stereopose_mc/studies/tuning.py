@@ -307,8 +307,8 @@ def comparison_table(before: Evaluation, after: Evaluation) -> pd.DataFrame:
     NIS/dof, median errors (medians over the trials not lost), cost."""
     rows = []
     for name, ev in (("before", before), ("after", after)):
-        row: dict[str, object] = {"tuning": name, "trials": ev.trials, "lost": ev.lost,
-                                  "inconsistent": ev.inconsistent, "medians over (not lost)": ev.trials - ev.lost}  # fmt: skip
+        row: dict[str, object] = {"tuning": name, "trials": ev.trials, "lost": ev.lost, "inconsistent": ev.inconsistent,
+                                  "medians over (not lost)": ev.trials - ev.lost}  # fmt: skip
         row.update({f"NEES/dof {k.removeprefix('nees_') if k != 'nees' else 'full'}": v for k, v in ev.nees.items()})
         row["NIS/dof"] = ev.nis
         row.update({f"median {e}": v for e, v in ev.errors.items()})
