@@ -234,7 +234,7 @@ class Prepared:
         FilterPy baseline's full-state EKF)."""
         import dataclasses
 
-        return dataclasses.replace(self.filter(kind), error_state="full", pseudo_second_order=False)
+        return dataclasses.replace(self.filter(kind), error_state="full", second_order=False)
 
 
 def prepare(d: dict) -> Prepared:

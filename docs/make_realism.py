@@ -69,7 +69,7 @@ def prior_start(d: dict) -> dict:
 def first_order(d: dict) -> dict:
     d = copy.deepcopy(d)
     for f in d["filters"]:
-        f["pseudo_linearization"] = "first_order"
+        f["linearization"] = "first_order"
     return d
 
 
@@ -107,7 +107,8 @@ def variants(real: dict) -> list[tuple[str, str, dict]]:
         ("all-ungated", "everything, no gating", no_gating(real)),
         ("all-prior-start", "everything, the filter started from the N(truth, P0) draw (the thesis) instead of the "
                             "first stereo frame", prior_start(real)),
-        ("all-first-order", "everything, the pseudo rows' R without their linearization's variance (the thesis)",
+        ("all-first-order", "everything, the flow and pseudo rows' R without their linearization's variance (the "
+                            "thesis)",
          first_order(real)),
     ]
     for name, _, d in out:
@@ -258,7 +259,7 @@ def reading(rows: list[dict], trials: int) -> str:
         out.append(f"- {name}: the most overconfident block is {b} (median NEES/dof {fmt(r[f'nees_{b}'])}; ideal "
                    f"{fmt(base[f'nees_{b}'])}); {r['inconsistent']} of {r['trials']} trials flagged inconsistent.")
     for name, fix in (("all-prior-start", "the start from the first stereo frame"),
-                      ("all-first-order", "the pseudo rows' second-order variance")):  # fmt: skip
+                      ("all-first-order", "the second-order R of the flow and pseudo rows")):  # fmt: skip
         if name in by:
             r, a = by[name], by["all"]
             out.append(f"- Without {fix} ({name}): {r['lost']} lost and {r['inconsistent']} inconsistent of "

@@ -56,7 +56,7 @@ class FilterSetup:
     gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
     gate_inflate: bool = False  # the gate's covariance inflation when it would reject most features (gating.py)
     error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
-    pseudo_second_order: bool = True  # the pseudo rows' R adds their linearization's variance (core.inertia)
+    second_order: bool = True  # the flow and pseudo rows' R add their linearization's variance (core.camera, inertia)
 
     def iteration(self, first: bool) -> Iteration | None:
         """The Gauss-Newton knobs of an update (``first``: the update at ``t = dt``); None: the EKF update."""
@@ -151,12 +151,12 @@ class FilterBase(_Model):
     transition: Literal["expm", "taylor"] = "taylor"
     taylor_order: Annotated[int, Field(ge=1, le=12)] = 4
     integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 1
-    pseudo_linearization: Literal["second_order", "first_order"] = Field(
+    linearization: Literal["second_order", "first_order"] = Field(
         default="second_order",
-        description="R of the inertia pseudo-measurement's rows: 'second_order' adds the variance its linearization "
-        "leaves out (the gyroscopic term is quadratic in omega and multiplies k: large while omega is uncertain); "
-        "'first_order': sigma_alpha^2 alone (the thesis). See docs/filters.md, Inertia pseudo-measurement",
-    )
+        description="R of the rows whose model multiplies two uncertain blocks: 'second_order' adds the variance "
+        "their linearization leaves out (the image velocities hold omega x points, the inertia pseudo-measurement "
+        "omega^2 and k: large while those are uncertain); 'first_order': the noise alone (the thesis). See "
+        "docs/filters.md, Second-order R")
 
     @property
     def label(self) -> str:
@@ -243,6 +243,8 @@ class UKFConfig(FilterBase):
         return v
 
     def setup(self, **common: Any) -> UKFSetup:
+        # its sigma points see the products of uncertain blocks themselves: no second-order R
+        common = {**common, "second_order": False}
         return UKFSetup(**common, alpha=self.alpha, beta=self.beta, kappa=self.kappa, first_update=self.first_update)
 
 

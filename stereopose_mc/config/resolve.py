@@ -164,5 +164,5 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         gate_probability=None if f.gating is None else f.gating.probability,
         gate_inflate=f.gating is not None and f.gating.inflate,
         error_state=f.error_state,
-        pseudo_second_order=f.pseudo_linearization == "second_order",
+        second_order=f.linearization == "second_order",
     )

@@ -341,8 +341,10 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     # rows: increasing trial indices into the step's batch (mc.trial's active set); all of them: no gather
     every = rows.size == step.y.shape[0] and rows.size > 0 and rows[0] == 0 and rows[-1] == rows.size - 1
     y = _writable(step.y if every else step.y[rows])
-    if step.alpha_var is not None and setup.pseudo:  # per-trial pseudo-row variances
-        R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, step.alpha_var[rows]), (b, m)))
+    if (step.alpha_var is not None and setup.pseudo) or step.feature_var is not None:  # per-trial R rows
+        av = step.alpha_var[rows] if step.alpha_var is not None and setup.pseudo else None
+        fv = None if step.feature_var is None else step.feature_var[rows][:, vis]
+        R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, av, fv), (b, m)))
     alpha = _writable(step.alpha if every else step.alpha[rows]) if setup.pseudo else zeros3
     keep = None if step.feature_mask is None else step.feature_mask[rows]
     if fs.gate_probability is not None and nvis:

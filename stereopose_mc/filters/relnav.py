@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from ..config.resolve import FilterSetup, Setup
 from ..core import camera, dynamics, jacobians, state as st
+from ..core import errorstate as es
 from ..core import kalman as kf
 from ..core import layout as lay
 from ..core.inertia import h_pseudo, pseudo_second_order_variance
@@ -66,6 +67,7 @@ class StepMeasurement:
     visible: Array  # (N,) bool: features in view at this step
     t: float
     alpha_var: Array | None = None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
+    feature_var: Array | None = None  # (B, N, C) per-trial additions to every feature's R (second order); None: none
     feature_mask: Array | None = None  # (B, n_visible) bool: per trial, the visible features measured (faults)
 
 
@@ -120,14 +122,32 @@ def pseudo_linearization_variance(x: Array, P: Array, setup: Setup, t: float) ->
     return pseudo_second_order_variance(x, P[..., w, w], P[..., -2:, -2:], P[..., -2:, w], nu_dot)
 
 
-def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int, alpha_var: Array | None = None) -> Array:
-    """The filter's R diagonal, ``(m,)``, or ``(b, m)`` with per-trial pseudo rows ``alpha_var (b, 3)``."""
+def measurement_noise(fs: FilterSetup, setup: Setup, n_visible: int, alpha_var: Array | None = None,
+                      feature_var: Array | None = None) -> Array:  # fmt: skip
+    """The filter's R diagonal, ``(m,)``, or ``(b, m)`` with per-trial pseudo rows ``alpha_var (b, 3)`` and/or
+    per-trial additions ``feature_var (b, n_visible, C)`` to the features' rows."""
     r = np.tile(channel_variances(fs, setup.disparity), n_visible)
+    if feature_var is not None:
+        r = r + feature_var.reshape(feature_var.shape[0], -1)
     if not setup.pseudo:
         return r
     if alpha_var is None:
-        return np.concatenate([r, np.full(3, fs.sigma_alpha**2)])
-    return np.concatenate([np.broadcast_to(r, alpha_var.shape[:-1] + r.shape), alpha_var], axis=-1)
+        return np.concatenate([r, np.broadcast_to(fs.sigma_alpha**2, r.shape[:-1] + (3,))], axis=-1)
+    return np.concatenate([np.broadcast_to(r, alpha_var.shape[:-1] + r.shape[-1:]), alpha_var], axis=-1)
+
+
+def flow_linearization_variance(x: Array, P: Array, setup: Setup) -> Array:
+    """``(b, N, C)``: the variance the image-velocity rows' linearization at ``x`` leaves out (``core.camera``), from
+    the ``omega`` block of ``P`` and each feature point's ``3 x 3`` block (the full state's or an error state's: the
+    points are additive in every chart; the aligned chart's, in the rotated body frame, to first order the same)."""
+    full = P.shape[-1] == x.shape[-1]
+    N = st.n_points(x.shape[-1])
+    at = lay.OMEGA if full else lay.E_OMEGA
+    w = slice(at, at + lay.VEC)
+    p0 = (st.points_slice(N) if full else es.points_slice(N)).start
+    idx = p0 + np.arange(3 * N).reshape(N, 3)
+    P_pp = P[:, idx[:, :, None], idx[:, None, :]]  # (b, N, 3, 3)
+    return camera.flow_second_order_variance(x, P[..., w, w], P_pp, setup.baseline, setup.disparity, setup.focal)
 
 
 def stack_measurement(y_feat: Array, visible: Array, pseudo: bool) -> Array:
@@ -159,7 +179,8 @@ def gated_model(x: Array, P: Array, measure, step: StepMeasurement, rows: Array,
     ``measure(x, rows, jac)`` is the step's model in the filter's own coordinates (the full
     state, or an error state with ``x`` its zero and ``P`` its covariance).
     """
-    R = measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows])
+    R = measurement_noise(fs, setup, int(step.visible.sum()), None if step.alpha_var is None else step.alpha_var[rows],
+                          None if step.feature_var is None else step.feature_var[rows][:, step.visible])
     y = step.y[rows]
     nvis = int(step.visible.sum())
     C = channel_variances(fs, setup.disparity).size

@@ -270,12 +270,16 @@ def run_filter(
             nis_dof[..., k] -= 3
         alpha_var = (pseudo_row_variance(np.nan_to_num(s2_k, nan=1.0), src.sigma_floor) if src.differentiated
                      else None)  # None: the filter's sigma_alpha^2  # fmt: skip
-        if pseudo_k and fs.pseudo_second_order:  # + the variance the pseudo rows' linearization leaves out
-            if alpha_var is None:
-                alpha_var = np.full((B, 3), fs.sigma_alpha**2)
+        feature_var = None
+        if fs.second_order:  # + the variance the flow and pseudo rows' linearization leaves out
+            feature_var = np.zeros(y_feat.shape[:1] + y_feat.shape[2:])  # (B, N, C)
             with np.errstate(all="ignore"):
-                alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
-        measured = StepData(y_feat[:, k], np.nan_to_num(a_k), truth.t[k], alpha_var)
+                feature_var[active] = relnav.flow_linearization_variance(xa, Pa, setup_k)
+                if pseudo_k:
+                    if alpha_var is None:
+                        alpha_var = np.full((B, 3), fs.sigma_alpha**2)
+                    alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
+        measured = StepData(y_feat[:, k], np.nan_to_num(a_k), truth.t[k], alpha_var, feature_var)
         with np.errstate(all="ignore"):
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
             x_true_k = x_true_all if x_true_all.ndim == 1 else x_true_all[active]
@@ -359,6 +363,7 @@ class StepData:
     alpha: Array  # (B, 3) measured angular acceleration (0 where not available)
     t: float
     alpha_var: Array | None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
+    feature_var: Array | None = None  # (B, N, C) per-trial additions to the features' R; None: none
 
 
 def _update(update, kernels: str, xa: Array, Pa: Array, active: Array, measured: StepData, visible: Array,
@@ -379,6 +384,7 @@ def _update(update, kernels: str, xa: Array, Pa: Array, active: Array, measured:
         step = relnav.StepMeasurement(
             y=relnav.stack_measurement(measured.y[sel], vis, setup.pseudo), alpha=measured.alpha[sel], visible=vis,
             t=measured.t, alpha_var=None if measured.alpha_var is None else measured.alpha_var[sel],
+            feature_var=None if measured.feature_var is None else measured.feature_var[sel],
             feature_mask=None if kept is None else kept[sel, k][:, vis],
         )  # fmt: skip
         f = update

@@ -54,14 +54,14 @@ def test_gauge_nees_must_stay_above_the_bound_for_the_whole_window():
 def test_case_b_trial_758_is_flagged_inconsistent_only_where_its_error_stays_large():
     """Trial 758 of case B (k2 error about 6.4 at the end with the thesis's filter, counted as converged before issue 10).
 
-    The thesis's full-state IEKF (first-order pseudo-row R) keeps a k2 error of ~6.9: flagged ``inconsistent`` (issue 33:
+    The thesis's full-state IEKF (first-order R) keeps a k2 error of ~6.9: flagged ``inconsistent`` (issue 33:
     a flag only, the filter runs to the end and its errors are recorded). The default
     (aligned error state) IEKF brings it down to < 0.05 (its transient peak was ~2): neither
     lost nor inconsistent, and rightly so.
     """
     scn = load_scenario(config_path("B"))
     pr = engine.prepare(scn)
-    full = dataclasses.replace(pr.filters[0], error_state="full", pseudo_second_order=False, label="full")
+    full = dataclasses.replace(pr.filters[0], error_state="full", second_order=False, label="full")
     res = run_chunk(scn.seed, np.array([758]), pr.setup, pr.truth, pr.exact, [pr.filters[0], full], pr.bounds)
     aligned, thesis = res.runs
     assert thesis.inconsistent_step[0] > 0, "trial 758 must be flagged with the full-state IEKF"

@@ -41,7 +41,9 @@ def test_batched_equals_one_trial_at_a_time():
         one = run_chunk(scn.seed, np.array([j]), setup, truth, exact, filters, Bounds())
         for rb, r1 in zip(batch.runs, one.runs):
             np.testing.assert_array_equal(rb.errors[j], r1.errors[0])
-            np.testing.assert_array_equal(rb.nees[j], r1.nees[0])
+            # the numpy NEES's BLAS products may round the last bit by the batch's memory alignment (seen once, on a
+            # diverging EKF's NEES of 1.5e6); the state, errors and iterations are bit for bit the same
+            np.testing.assert_allclose(rb.nees[j], r1.nees[0], rtol=1e-13)
             np.testing.assert_array_equal(rb.iterations[j], r1.iterations[0])
             np.testing.assert_array_equal(rb.x_final[j], r1.x_final[0])
 
