@@ -53,6 +53,11 @@ def run(
     out = out or Path("runs") / label
     opts = dict(trials=trials, seed=seed, jobs=jobs, chunk_size=chunk_size, backend=backend or "auto", kernels=kernels,
                 scheduler=scheduler, command=list(sys.argv), say=lambda line: typer.echo(f"note: {line}", err=True))
+    if resume is None:
+        from ..config.warnings import process_noise_notes
+
+        for loc, line in process_noise_notes(scn):  # what `process_noise: auto` chose
+            opts["say"](f"{scn.filters[loc[1]].label}: {line}")
     try:
         with progress_reporter(label, quiet) as prog:
             if resume is not None:

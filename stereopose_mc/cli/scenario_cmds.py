@@ -16,7 +16,7 @@ def validate(files: list[Path] = typer.Argument(..., help="scenario YAML files")
     """Check scenario files: ``ok: FILE`` per good file; one line per problem on stderr
     (``FILE:LINE: key.path: message``) and exit code 2 if any file has one. Warnings (``FILE:LINE: key.path:
     warning: ...``, config/warnings.py: a dispersion beyond P0 on the truth alone, features never in view) go
-    to stderr too and leave the exit code 0."""
+    to stderr too and leave the exit code 0, and so do notes (``... note: ...``: what ``process_noise: auto`` chose)."""
     from ..studies import sweep as sw
     from ..config import ScenarioError, load_scenario
 

@@ -117,6 +117,12 @@ class FilterMeasurementNoise(_Model):
 class ProcessNoiseConfig(_Model):
     """The filter's Q, variances added per step, per state block (derivation: docs/filters.md, Process noise)."""
 
+    auto: bool = Field(
+        default=False,
+        description="add to the defaults the Q that covers the truth_model's unmodelled J2 and drag differential "
+        "accelerations and gravity-gradient torque (docs/filters.md, Process noise); the blocks given beside it are "
+        "taken as they are. `process_noise: auto` is short for `{auto: true}`",
+    )
     rho_m2: NonNeg = 1e-8
     rho_dot_m2ps2: NonNeg = 1e-12
     omega_deg2ps2: NonNeg = 1e-10
@@ -157,6 +163,15 @@ class FilterBase(_Model):
         "their linearization leaves out (the image velocities hold omega x points, the inertia pseudo-measurement "
         "omega^2 and k: large while those are uncertain); 'first_order': the noise alone (the thesis). See "
         "docs/filters.md, Second-order R")
+
+    @field_validator("process_noise", mode="before")
+    @classmethod
+    def _auto(cls, v):
+        if isinstance(v, str):
+            if v != "auto":
+                raise ValueError(f"must be 'auto' or a mapping of per-block variances (got {v!r})")
+            return {"auto": True}
+        return v
 
     @property
     def label(self) -> str:

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 from ..core import state as st
 from ..core.orbit import Orbit
 from ..core.perturbed import Perturbations
+from ..core.unmodelled import Unmodelled, unmodelled, white_acceleration
 from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
 from .filters import FilterBase, FilterSetup
 from .schema import CovarianceConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
@@ -157,7 +158,7 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         sigma_alpha=r.angular_acceleration_sigma_radps2
         if r.angular_acceleration_sigma_radps2 is not None
         else s.sigma_alpha,
-        Q_diag=block_diag(f.process_noise, s.n_points),
+        Q_diag=block_diag(process_noise_of(f.process_noise, s), s.n_points),
         transition=f.transition,
         taylor_order=f.taylor_order,
         substeps=f.integration_substeps,
@@ -166,3 +167,43 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         error_state=f.error_state,
         second_order=f.linearization == "second_order",
     )
+
+
+def unmodelled_of(s: Setup) -> Unmodelled:
+    """Bounds on the truth's unmodelled accelerations (core/unmodelled.py) over the scenario: the separation
+    ``|rho_0| + |rho_dot_0| T`` at most, the target's moments from its ratios ``k``."""
+    x0 = s.x0
+    rho_dot = float(np.linalg.norm(x0[st.RHO_DOT]))
+    rho = float(np.linalg.norm(x0[st.RHO])) + rho_dot * s.steps * s.dt
+    k = x0[st.block_index(s.n_points)["k"]]
+    moments = np.exp([k[0] + k[1], k[1], 0.0])  # Ix : Iy : Iz from k = [ln(Ix/Iy), ln(Iy/Iz)]
+    o = s.orbit
+    return unmodelled(s.perturbations, o.a, o.e, o.i, rho, rho_dot, moments)
+
+
+def process_noise_of(c: ProcessNoiseConfig, s: Setup) -> ProcessNoiseConfig:
+    """The filter's Q per block in the scenario's units: ``c`` itself, or with ``auto`` the defaults plus what
+    covers the unmodelled accelerations (``white_acceleration`` of ``unmodelled_of``; docs/filters.md), the blocks
+    the entry gives beside ``auto`` taken as they are."""
+    if not c.auto:
+        return c
+    u = unmodelled_of(s)
+    q_rho, q_rho_dot = white_acceleration(u.acceleration, s.dt)
+    q_omega = white_acceleration(u.gravity_gradient, s.dt)[1] / DEG**2
+    base = ProcessNoiseConfig()
+    derived = {"rho_m2": base.rho_m2 + q_rho, "rho_dot_m2ps2": base.rho_dot_m2ps2 + q_rho_dot,
+               "omega_deg2ps2": base.omega_deg2ps2 + q_omega}  # fmt: skip
+    given = {k: getattr(c, k) for k in c.model_fields_set if k != "auto"}
+    return ProcessNoiseConfig(**{**derived, **given})
+
+
+def process_noise_note(c: ProcessNoiseConfig, s: Setup) -> str | None:
+    """One line on what ``process_noise: auto`` chose (None without ``auto``)."""
+    if not c.auto:
+        return None
+    if s.perturbations is None:
+        return "process_noise auto: the defaults (no truth_model: the truth is the filters' Keplerian, torque-free model)"
+    u, q = unmodelled_of(s), process_noise_of(c, s)
+    return (f"process_noise auto: rho {q.rho_m2:.3g} m^2, rho_dot {q.rho_dot_m2ps2:.3g} m^2/s^2 (J2 differential "
+            f"{u.j2:.3g} m/s^2, drag differential {u.drag:.3g} m/s^2), omega {q.omega_deg2ps2:.3g} deg^2/s^2 "
+            f"(gravity gradient {u.gravity_gradient:.3g} rad/s^2)")

@@ -7,6 +7,9 @@ One :class:`~stereopose_mc.config.loader.Problem` per warning (``file:line: key:
   filter's initial standard deviation of that block (``initial_covariance``): the trials start with an error the
   filter's ``P0`` says is unlikely, so they are judged against a covariance that was never true.
 
+Notes (``file:line: key: note: ...``, exit code 0): what ``process_noise: auto`` resolved to, per filter
+(config/resolve.py ``process_noise_note``).
+
 The other warning, a scenario whose cameras never see a feature point, needs the truth and the camera model: the
 CLI adds it (``sim.measurements.noise_free``).
 """
@@ -60,10 +63,23 @@ def dispersion_warnings(scn: Scenario) -> list[tuple[tuple, str]]:
     return out
 
 
+def process_noise_notes(scn: Scenario) -> list[tuple[tuple, str]]:
+    """``(key path, line)`` per filter with ``process_noise: auto``: the values it resolved to."""
+    from .resolve import process_noise_note, setup_of
+
+    auto = [i for i, f in enumerate(scn.filters) if f.process_noise.auto]
+    if not auto:
+        return []
+    s = setup_of(scn)
+    return [(("filters", i, "process_noise"), process_noise_note(scn.filters[i].process_noise, s)) for i in auto]
+
+
 def scenario_warnings(path: Path, scn: Scenario, extra: list[tuple[tuple, str]] = ()) -> list[Problem]:
-    """The warnings of a valid scenario file, with their lines (``extra``: more ``(key path, message)``)."""
+    """The warnings of a valid scenario file, with their lines (``extra``: more ``(key path, message)``), then
+    its notes."""
     text = Path(path).read_text(encoding="utf-8")
     root, _, _ = _compose(text, str(path))
     where = Locator(root)
-    items = dispersion_warnings(scn) + list(extra)
-    return [Problem(str(path), where.line(loc), ".".join(map(str, loc)), f"warning: {msg}") for loc, msg in items]
+    items = [(loc, f"warning: {msg}") for loc, msg in dispersion_warnings(scn) + list(extra)]
+    items += [(loc, f"note: {msg}") for loc, msg in process_noise_notes(scn)]
+    return [Problem(str(path), where.line(loc), ".".join(map(str, loc)), msg) for loc, msg in items]

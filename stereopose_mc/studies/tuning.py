@@ -54,7 +54,7 @@ from typing import Callable, Iterable
 import numpy as np
 import pandas as pd
 
-from ..config.resolve import DEG, filter_setup_of, setup_of
+from ..config.resolve import DEG, filter_setup_of, process_noise_of, setup_of
 from ..config.schema import Scenario
 from ..config.sensor import feature_count
 from ..core import errorstate as es
@@ -121,10 +121,11 @@ def parse_space(space: str | Iterable[str]) -> tuple[str, ...]:
 
 
 def start_params(scn: Scenario, index: int, space: tuple[str, ...]) -> dict[str, float]:
-    """The search's starting point: today's Q values, R and P0 factors 1."""
+    """The search's starting point: today's Q values (those ``process_noise: auto`` resolves to), R and P0 factors
+    1."""
     p: dict[str, float] = {}
     if "q" in space:
-        pn = scn.filters[index].process_noise
+        pn = process_noise_of(scn.filters[index].process_noise, setup_of(scn))
         p.update({f"Q.{b}": float(getattr(pn, KEYS[b])) for b in BLOCKS})
     if "r" in space:
         p["R"] = 1.0
@@ -146,7 +147,8 @@ def scenario_of(scn: Scenario, index: int, params: dict[str, float]) -> Scenario
     d = scn.model_dump(mode="json")
     f = d["filters"][index]
     pn = {KEYS[b]: _sig3(params[f"Q.{b}"]) for b in BLOCKS if f"Q.{b}" in params}
-    f["process_noise"] = {**f["process_noise"], **pn}
+    if pn:  # tuned values in full: an ``auto`` entry's derived Q is in them, so ``auto`` goes
+        f["process_noise"] = {**f["process_noise"], **pn, "auto": False}
     a_img = params.get("R", params.get("R.image"))
     a_flow = params.get("R", params.get("R.flow"))
     if a_img is not None or a_flow is not None:
