@@ -119,9 +119,10 @@ class ProcessNoiseConfig(_Model):
 
     auto: bool = Field(
         default=False,
-        description="add to the defaults the Q that covers the truth_model's unmodelled J2 and drag differential "
-        "accelerations and gravity-gradient torque (docs/filters.md, Process noise); the blocks given beside it are "
-        "taken as they are. `process_noise: auto` is short for `{auto: true}`",
+        description="add to the blocks (the defaults, or the values given beside it) the Q that covers the "
+        "truth_model's unmodelled J2 and drag differential accelerations (rho, rho_dot) and gravity-gradient torque "
+        "(omega); nothing without a truth_model (docs/filters.md, Process noise). `process_noise: auto` is short "
+        "for `{auto: true}`",
     )
     rho_m2: NonNeg = 1e-8
     rho_dot_m2ps2: NonNeg = 1e-12

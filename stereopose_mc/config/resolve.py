@@ -182,19 +182,16 @@ def unmodelled_of(s: Setup) -> Unmodelled:
 
 
 def process_noise_of(c: ProcessNoiseConfig, s: Setup) -> ProcessNoiseConfig:
-    """The filter's Q per block in the scenario's units: ``c`` itself, or with ``auto`` the defaults plus what
-    covers the unmodelled accelerations (``white_acceleration`` of ``unmodelled_of``; docs/filters.md), the blocks
-    the entry gives beside ``auto`` taken as they are."""
+    """The filter's Q per block in the scenario's units: ``c`` itself, or with ``auto`` its blocks (the defaults or
+    the values given beside ``auto``) plus what covers the unmodelled accelerations on ``rho``, ``rho_dot`` and
+    ``omega`` (``white_acceleration`` of ``unmodelled_of``; docs/filters.md, Process noise)."""
     if not c.auto:
         return c
     u = unmodelled_of(s)
     q_rho, q_rho_dot = white_acceleration(u.acceleration, s.dt)
     q_omega = white_acceleration(u.gravity_gradient, s.dt)[1] / DEG**2
-    base = ProcessNoiseConfig()
-    derived = {"rho_m2": base.rho_m2 + q_rho, "rho_dot_m2ps2": base.rho_dot_m2ps2 + q_rho_dot,
-               "omega_deg2ps2": base.omega_deg2ps2 + q_omega}  # fmt: skip
-    given = {k: getattr(c, k) for k in c.model_fields_set if k != "auto"}
-    return ProcessNoiseConfig(**{**derived, **given})
+    return c.model_copy(update={"auto": False, "rho_m2": c.rho_m2 + q_rho, "rho_dot_m2ps2": c.rho_dot_m2ps2 + q_rho_dot,
+                                "omega_deg2ps2": c.omega_deg2ps2 + q_omega})  # fmt: skip
 
 
 def process_noise_note(c: ProcessNoiseConfig, s: Setup) -> str | None:
