@@ -18,7 +18,7 @@ runner = CliRunner()
 # case B with a tenth of its initial covariance, short, and the thesis's full-state IEKF: the aligned error state
 # (the default) stays consistent even with Q x 1e-4 here, the full-state filter needs its Q
 MEDIUM_P0 = {"rho_m2": 0.1, "rho_dot_m2ps2": 1e-3, "omega_deg2ps2": 0.1, "q": 1e-6, "feature_points_m2": 0.1, "k": 0.1}
-MISTUNED = {k: 1e-4 * v for k, v in ProcessNoiseConfig().model_dump().items() if k != "auto"}
+MISTUNED = {k: 1e-4 * v for k, v in ProcessNoiseConfig().model_dump().items()}
 
 
 @pytest.fixture(scope="module")

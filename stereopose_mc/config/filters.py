@@ -19,7 +19,7 @@ from typing import Annotated, Any, Literal, NamedTuple, Union
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_serializer
 
 from .base import NonNeg, Pos, _Model
 
@@ -130,6 +130,15 @@ class ProcessNoiseConfig(_Model):
     q: NonNeg = 3e-11
     feature_points_m2: NonNeg = 3e-10
     k: NonNeg = 1e-10
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        """Without ``auto`` the dump is the blocks alone, as before ``auto`` existed (run directories' scenario
+        text and hashes)."""
+        d = handler(self)
+        if isinstance(d, dict) and not self.auto:
+            d.pop("auto", None)
+        return d
 
 
 class GatingConfig(_Model):
