@@ -103,3 +103,21 @@ def test_bad_values_give_one_line(value, path, fragment):
         load_scenario_text(with_filters(REALISTIC, {"type": "iekf", "process_noise": value}), "bad.yaml")
     (p,) = exc.value.problems
     assert p.path == path and fragment in p.message and "\n" not in str(p)
+
+
+def test_tune_starts_from_auto_and_writes_it_out():
+    """``spmc tune`` on an ``auto`` entry starts from the values it resolves to; its tuned Q are those values in full,
+    so the tuned entry has no ``auto`` (the derived part would be added twice)."""
+    from stereopose_mc.studies.tuning import scenario_of, start_params
+
+    scn = load_scenario_text(with_filters(REALISTIC, {"type": "iekf", "process_noise": "auto"}), "s.yaml")
+    (auto,) = blocks(with_filters(REALISTIC, {"type": "iekf", "process_noise": "auto"}))
+    p = start_params(scn, 0, ("q",))
+    assert p["Q.omega"] * DEG**2 == pytest.approx(auto["omega"][0], rel=1e-12)
+    assert p["Q.rho_dot"] == pytest.approx(auto["rho_dot"][0], rel=1e-12)
+    tuned = scenario_of(scn, 0, {**p, "Q.omega": 2.0 * p["Q.omega"]})
+    pn = tuned.filters[0].process_noise
+    assert not pn.auto and "auto" not in pn.model_dump()
+    assert pn.omega_deg2ps2 == pytest.approx(2.0 * p["Q.omega"], rel=2e-3)  # 3 significant digits
+    untouched = scenario_of(scn, 0, {"R": 2.0})
+    assert untouched.filters[0].process_noise.auto
