@@ -51,24 +51,32 @@ def write_chi2_table(path: Path = CHI2_TABLE, max_dof: int = 1000) -> None:
     Path(path).write_text("\n".join(rows) + "\n", encoding="utf-8")
 
 
-def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, dof: dict[str, int],
+def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, dof: dict[str, int | Array],
                          sigma_ratio: float, nees_factor: float) -> list[str]:  # fmt: skip
-    """Reason per row of ``rows`` ('' when consistent enough) from NEES histories ``(B, K+1)``."""
+    """Reason per row of ``rows`` ('' when consistent enough) from NEES histories ``(B, K+1)``.
+
+    ``dof[name]``: the NEES's degrees of freedom, one number, or ``(B, K+1)`` per trial and step (feature slots:
+    only the occupied slots count, ``filters.slots.nees``); a step with 0 dof does not test.
+    """
     reasons = [""] * rows.size
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):
         for name, a in parts.items():
             win = a[rows, w0 : k + 1]
+            d = dof[name] if np.isscalar(dof[name]) else dof[name][rows, w0 : k + 1]
             if name == "nees_gauge":
-                bound = nees_factor * chi2_999(dof[name])
+                bound = nees_factor * (chi2_999(d) if np.isscalar(d) else np.vectorize(chi2_999, otypes=[float])(
+                    np.maximum(d, 1)))  # fmt: skip
                 low = np.min(win, axis=1)
-                bad = low > bound
+                bad = np.all(win > bound, axis=1)
                 for j in np.flatnonzero(bad):
+                    dj = d if np.isscalar(d) else int(np.min(d[j]))
                     reasons[j] = reasons[j] or (f"inconsistent: gauge-projected NEES >= {low[j]:.3g} over "
                                                 f"{k - w0 + 1} steps > {nees_factor:g} x chi2 99.9% bound "
-                                                f"{bound / nees_factor:.3g} ({dof[name]} dof)")  # fmt: skip
+                                                f"{chi2_999(dj):.3g} ({dj} dof)")  # fmt: skip
             elif name.startswith("nees_"):
-                sig = np.sqrt(np.min(win, axis=1) / dof[name])
-                for j in np.flatnonzero(sig > sigma_ratio):
+                ratio = win / d if np.isscalar(d) else np.where(d > 0, win / np.maximum(d, 1), np.inf)
+                sig = np.sqrt(np.min(ratio, axis=1))
+                for j in np.flatnonzero(np.isfinite(sig) & (sig > sigma_ratio)):
                     reasons[j] = reasons[j] or (f"inconsistent: {name[5:]} error >= {sig[j]:.3g} x its claimed "
                                                 f"sigma over {k - w0 + 1} steps > {sigma_ratio:g}")  # fmt: skip
     return reasons

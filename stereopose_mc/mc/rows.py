@@ -85,6 +85,14 @@ def trials_columns(chunk: ChunkResult, t: np.ndarray, window_start: float, seed:
         dofs = es.nees_dof(r.state_dim) if r.state_dim else {"nees": -1, "nees_gauge": -1}
         d["nees_dof"] = np.full(B, dofs["nees"], np.int64)  # so that any NEES can be normalised by a reader
         d["nees_gauge_dof"] = np.full(B, dofs["nees_gauge"], np.int64)
+        for name in NEES_PARTS:  # the mean degrees of freedom over the window (feature slots: occupied ones only)
+            if r.nees_dof_steps is not None and name in r.nees_dof_steps:
+                d[f"dof_{name}"] = r.nees_dof_steps[name][:, w].mean(axis=1).astype(float)
+            else:
+                d[f"dof_{name}"] = np.full(B, float(dofs.get(name, np.nan)))
+        if r.nees_dof_steps is not None:
+            d["nees_dof"] = np.rint(r.nees_dof_steps["nees"][:, w].mean(axis=1)).astype(np.int64)
+            d["nees_gauge_dof"] = np.rint(d["dof_nees_gauge"]).astype(np.int64)
         frames.append(d)
     return concat_columns(frames)
 

@@ -39,6 +39,7 @@ from ..core import quaternion as qt
 from ..core import state as st
 from ..core import kalman as kf
 from ..filters import estimators, registry, relnav
+from ..filters import slots as sl
 from ..filters.initialization import measurement_start
 from .divergence import inconsistent_reasons
 from .alpha_source import alpha_source_of, alpha_step, pseudo_row_variance
@@ -136,6 +137,9 @@ class FilterRun:
     inconsistent_step: Array | None = None  # (B,) int: first step a truth-based rule fired, -1 if none (a flag only)
     inconsistent_reason: list[str] = field(default_factory=list)
     state_dim: int = 0  # n: the NEES has n - 1 degrees of freedom, the gauge-projected one n - 4 (errorstate.nees_dof)
+    # feature slots (filters.slots): per NEES key, its degrees of freedom per trial and step (B, K+1) (only the
+    # occupied slots count); None: the fixed errorstate.nees_dof(state_dim)
+    nees_dof_steps: dict[str, Array] | None = None
     axis_err: Array | None = None  # (B, K+1, len(AXES)): per-axis error-state components (AXIS_UNITS); NaN once lost
     axis_sigma: Array | None = None  # (B, K+1, len(AXES)): the filter's standard deviation of each
 
@@ -195,6 +199,7 @@ def run_filter(
     P0: Array | None = None,
     kernels: str = "numpy",
     tick: Callable[[int], None] | None = None,
+    slots: sl.Schedule | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
@@ -204,6 +209,9 @@ def run_filter(
     holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
     ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n)``: told of
     every ``n`` trial-steps done (``B`` per step; a chunk's lost trials count as done), for progress.
+    ``slots``: the state's point blocks are feature slots (``filters.slots``): at each step, after the prediction,
+    slots whose track ended are freed and slots with a new track are initialized from its measurement (``visible``
+    leaves those out of the update); the NEES count the occupied slots only.
     """
     stepper = step_functions(kernels)
     B, n = x0_hat.shape
@@ -226,6 +234,10 @@ def run_filter(
     P = np.broadcast_to(np.diag(setup.P0_diag), (B, n, n)).copy() if P0 is None else P0.copy()
     P = estimators.initial_covariance(x, P, fs)
     chart = registry.chart(fs)  # the chart of its covariance, in which its NEES are evaluated
+    image_var = relnav.channel_variances(fs, setup.disparity)[sl.IMAGE]
+    if slots is not None:  # the tracks of step 0 take their slots
+        x, P = sl.manage(x, P, chart, slots.born[:, 0], slots.freed(0), y_feat[:, 0], image_var, setup.baseline,
+                         setup.focal)  # fmt: skip
     err[:, 0] = errors_of(x, true_state(truth.x, 0, np.arange(B)), kernels)
     # every NEES of every step in one array, in the compiled update's column order (``_nees_keys``), stored at each
     # step by one assignment; ``nees`` and ``parts`` (``FilterRun``'s) are its columns
@@ -233,7 +245,11 @@ def run_filter(
     nees_all = np.full((B, K + 1, len(keys)), np.nan)
     nees = nees_all[..., keys.index("nees")]
     parts = {k: nees_all[..., keys.index(k)] for k in es.nees_dof(n) if k != "nees"}
-    _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
+    nees_dof = None if slots is None else {k: np.full((B, K + 1), d) for k, d in es.nees_dof(n).items()}
+    if slots is None:
+        _record_nees(nees_all, np.arange(B), 0, x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
+    else:
+        _record_slot_nees(nees_all, nees_dof, slots, np.arange(B), 0, x, P, truth.x, chart)
     ax_err = np.full((B, K + 1, len(AXES)), np.nan)
     ax_sig = np.full((B, K + 1, len(AXES)), np.nan)
     ax_err[:, 0], ax_sig[:, 0] = axis_errors_of(x, P, true_state(truth.x, 0, np.arange(B)), chart, kernels)
@@ -262,6 +278,9 @@ def run_filter(
             setup = dataclasses.replace(setup, orbit=truth.filter_orbits[k - 1])
         with np.errstate(all="ignore"):
             xa, Pa = stepper.predict(x_act, P_act, truth.t[k - 1], fs, setup)
+            if slots is not None:  # ended tracks free their slots, new ones take theirs
+                xa, Pa = sl.manage(xa, Pa, chart, slots.born[active, k], slots.freed(k)[active], y_feat[active, k],
+                                   image_var, setup.baseline, setup.focal)  # fmt: skip
         # alpha at t_{k-1} from the posteriors up to t_{k-1} (sample index k-1), used at t_k
         a_k, s2_k, td_state = alpha_step(src, k - 1, w_hist, v_hist, td_state, alpha[:, k])
         pseudo_k = setup.pseudo and bool(np.isfinite(a_k[active]).all())  # False during the warm-up
@@ -287,7 +306,10 @@ def run_filter(
                                 setup_k)  # fmt: skip
             e = errors_of(u.x, x_true_k, kernels)
             try:
-                v, pd = _posterior_nees(u, x_true_k, chart, kernels)
+                if slots is None:
+                    v, pd = _posterior_nees(u, x_true_k, chart, kernels)
+                else:
+                    v, pd = _slot_nees(nees_dof, slots, active, k, u.x, u.P, truth.x, chart), None
             except np.linalg.LinAlgError:
                 v, pd = None, None
             bad, incons = _check(u.x, u.P, e, bounds, pd)
@@ -327,7 +349,7 @@ def run_filter(
                     if not bad[j]:
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
-            by_nees = inconsistent_reasons(parts, active, w0, k, es.nees_dof(n), bounds.sigma_ratio,
+            by_nees = inconsistent_reasons(parts, active, w0, k, nees_dof or es.nees_dof(n), bounds.sigma_ratio,
                                            bounds.nees_factor)  # fmt: skip
             incons = [c or d for c, d in zip(incons, by_nees)]
         for j in np.flatnonzero(inc_step[active] < 0):
@@ -352,7 +374,28 @@ def run_filter(
     return FilterRun(fs.label, err, nees, nis, nis_dof, its, conv, div_step, reasons, nees_parts=parts,
                      x_final=x, P_final=P, k_sigma_ratio=k_ratio, dof=dof, gated=gated,
                      inconsistent_step=inc_step, inconsistent_reason=inc_reasons, state_dim=n,
-                     axis_err=ax_err, axis_sigma=ax_sig)  # fmt: skip
+                     axis_err=ax_err, axis_sigma=ax_sig, nees_dof_steps=nees_dof)  # fmt: skip
+
+
+def _slot_nees(nees_dof: dict[str, Array], slots: sl.Schedule, rows: Array, k: int, x: Array, P: Array,
+               x_true: Array, chart: str) -> Array:  # fmt: skip
+    """``filters.slots.nees`` of trials ``rows`` at step ``k`` as ``(len(rows), 8)`` in ``_nees_keys``' order; their
+    degrees of freedom into ``nees_dof[key][rows, k]``."""
+    xt = slots.true_state(true_state(x_true, k, rows), k, rows)
+    v, dof = sl.nees(x, P, chart, xt, slots.occupied[rows, k])
+    for key, d in dof.items():
+        nees_dof[key][rows, k] = d
+    return _nees_array(v)
+
+
+def _record_slot_nees(nees_all: Array, nees_dof: dict[str, Array], slots: sl.Schedule, rows: Array, k: int, x: Array,
+                      P: Array, x_true: Array, chart: str) -> None:  # fmt: skip
+    """``_record_nees`` with feature slots (``_slot_nees``)."""
+    with np.errstate(all="ignore"):
+        try:
+            nees_all[rows, k] = _slot_nees(nees_dof, slots, rows, k, x, P, x_true, chart)
+        except np.linalg.LinAlgError:
+            pass
 
 
 @dataclass(frozen=True)

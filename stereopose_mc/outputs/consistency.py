@@ -84,7 +84,9 @@ def summarize(trials: pd.DataFrame, label: str, state_dim: int, window_steps: in
     med = {}
     for k, d in dof.items():
         col = f"{k}_mean"
-        v = g[col].to_numpy(float) / d if col in g else np.array([])
+        per_trial = f"dof_{k}"  # the window's mean dof per trial (feature slots: occupied ones only)
+        dk = g[per_trial].to_numpy(float) if per_trial in g else d
+        v = g[col].to_numpy(float) / dk if col in g else np.array([])
         v = v[np.isfinite(v)]
         med[k] = float(np.median(v)) if v.size else float("nan")
     r = g["nis_ratio_mean"].to_numpy(float) if "nis_ratio_mean" in g else np.array([])

@@ -42,7 +42,8 @@ COLUMN_UNITS = {
     "nees_dof": "-", "nees_gauge_dof": "-", "inside_3sigma": "-", "runtime_s": "s", "chunk": "-", "population": "-", "percentile": "%", "trials": "-",
 }  # fmt: skip
 NEES_PARTS = tuple(k for k in es.nees_dof(es.BLOCK_PROBE_N) if k != "nees")  # nees_<block>, nees_gauge
-COLUMN_UNITS.update({n: "-" for n in NEES_PARTS} | {f"{n}_mean": "-" for n in NEES_PARTS})
+COLUMN_UNITS.update({n: "-" for n in NEES_PARTS} | {f"{n}_mean": "-" for n in NEES_PARTS}
+                    | {f"dof_{n}": "-" for n in NEES_PARTS})  # fmt: skip
 # the per-axis error-state components of the time series (err_<c>, sigma_<c>) and their units: the attitude chart's
 # d rho, d rho_dot, d omega, the attitude error vector a (theta), d k (core.errorstate; mc.trial.axis_errors)
 AXES = tuple(f"{b}_{c}" for b in ("rho", "rho_dot", "omega", "theta") for c in "xyz") + ("k1", "k2")
