@@ -505,8 +505,41 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
             problems.append(Problem(file, where.line(loc), path_str(loc), msg))
         else:
             problems += [Problem(file, where.line(loc), path_str(loc), m) for loc, m in _points_inside_mesh(scenario)]
+    if scenario is not None and scenario.measurements.tracks is not None:
+        scenario, found = _tracks_files(scenario, file)
+        problems += [Problem(file, where.line(loc), path_str(loc), msg) for loc, msg in found]
     problems.sort(key=lambda p: p.line or 0)
     return problems, (scenario if not problems else None)
+
+
+def _resolved(path: str, file: str) -> Path:
+    """``path`` made absolute: a relative path is taken from the scenario file's folder (the working directory
+    for a scenario given as text)."""
+    p = Path(path).expanduser()
+    if p.is_absolute():
+        return p
+    base = Path(file).parent if not file.startswith("<") else Path.cwd()
+    return (base / p).resolve()
+
+
+def _tracks_files(scenario: Scenario, file: str) -> tuple[Scenario, list[tuple[Loc, str]]]:
+    """The scenario with ``measurements.tracks.file`` / ``truth_file`` made absolute, and the problems (a file
+    that is missing or not Parquet/CSV; its columns are checked when it is read, sim/tracks_file.py)."""
+    t = scenario.measurements.tracks
+    update, out = {}, []
+    for key in ("file", "truth_file"):
+        value = getattr(t, key)
+        if value is None:
+            continue
+        p = _resolved(value, file)
+        loc = ("measurements", "tracks", key)
+        if not p.is_file():
+            out.append((loc, f"{p}: {'is a directory, not a file' if p.is_dir() else 'file not found'}"))
+        elif p.suffix.lower() not in (".parquet", ".csv"):
+            out.append((loc, f"{p}: expected a .parquet or .csv file"))
+        update[key] = str(p)
+    m = scenario.measurements.model_copy(update={"tracks": t.model_copy(update=update)})
+    return scenario.model_copy(update={"measurements": m}), out
 
 
 # ray directions of the inside test: two generic directions and their opposites (a point on the surface has one
@@ -540,10 +573,7 @@ def _mesh_file(scenario: Scenario, file: str) -> tuple[Scenario, str]:
     from .meshfiles import MeshFileError, read_mesh
 
     shape = scenario.target.shape
-    p = Path(shape.file).expanduser()
-    if not p.is_absolute():
-        base = Path(file).parent if not file.startswith("<") else Path.cwd()
-        p = (base / p).resolve()
+    p = _resolved(shape.file, file)
     try:
         m = read_mesh(p)
     except MeshFileError as exc:

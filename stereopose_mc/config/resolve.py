@@ -84,8 +84,7 @@ def block_diag(c: CovarianceConfig | ProcessNoiseConfig, n_points: int) -> Array
 def setup_of(s: Scenario) -> Setup:
     ti = s.truth_initial_state
     sensor = sensor_of(s)
-    pts = np.asarray(s.target.feature_points_m, dtype=float) if s.target.feature_points is None else (
-        feature_points_of(s, sensor.shape)[0])  # fmt: skip
+    pts = feature_points_of(s, sensor.shape)[0]
     k = st.k_from_inertia(np.asarray(s.target.inertia_kgm2, dtype=float))
     x0 = st.assemble(ti.rho_m, ti.rho_dot_mps, np.asarray(ti.omega_degps) * DEG, ti.q, pts, k)
     m = s.measurements

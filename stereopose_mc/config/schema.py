@@ -120,11 +120,18 @@ class TargetConfig(_Model):
     feature_points: SampledFeaturesConfig | None = Field(
         default=None, description="`{sample_on_surface: N}` instead of feature_points_m (needs shape)"
     )
+    feature_slots: Annotated[int, Field(ge=1, le=500)] | None = Field(
+        default=None,
+        description="number N of feature slots in the state, refilled as tracks come and go; instead of "
+        "feature_points_m / feature_points, for measurements.source images or tracks (docs/images.md)",
+    )
 
     @model_validator(mode="after")
     def _points(self):
-        if (self.feature_points_m is None) == (self.feature_points is None):
-            raise ValueError("give exactly one of feature_points_m or feature_points")
+        given = [k for k in ("feature_points_m", "feature_points", "feature_slots") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of feature_points_m, feature_points or feature_slots"
+                             + (f" (got {', '.join(given)})" if given else ""))
         if self.feature_points is not None and self.shape is None:
             raise ValueError("feature_points: {sample_on_surface: N} needs target.shape")
         return self
@@ -260,7 +267,106 @@ class IlluminationConfig(_Model):
         return _normalized(v, "sun_direction_lvlh")
 
 
+DETECTORS = ("gftt", "fast", "orb", "sift")  # sim/tracker/klt.py DETECTORS
+
+
+class ImageSensorConfig(_Model):
+    """The image sensor (sim/render/sensor.py ``SensorModel``)."""
+
+    exposure: Annotated[float, Field(gt=0, le=10)] = Field(
+        default=0.8, description="fraction of the full well a white surface facing the Sun fills")
+    full_well_e: Pos = Field(default=20000.0, description="full-well capacity (electrons)")
+    read_noise_e: NonNeg = Field(default=10.0, description="read noise (electrons, standard deviation)")
+    bits: Annotated[int, Field(ge=1, le=16)] = Field(default=8, description="digitization depth")
+    defocus_sigma_px: NonNeg = Field(default=0.0, description="Gaussian defocus blur (px, standard deviation)")
+
+
+class PanelsConfig(_Model):
+    """Two solar-panel wings beside the body (sim/render/scene.py ``Panels``)."""
+
+    span_m: Pos = 3.0
+    width_m: Pos = 1.0
+    thickness_m: Pos = 0.03
+    gap_m: NonNeg = 0.15
+    axis: Annotated[int, Field(ge=0, le=2)] = 0
+    normal_axis: Annotated[int, Field(ge=0, le=2)] = 2
+
+    @model_validator(mode="after")
+    def _axes(self):
+        if self.axis == self.normal_axis:
+            raise ValueError(f"normal_axis ({self.normal_axis}) must differ from axis ({self.axis})")
+        return self
+
+
+class TrackerConfig(_Model):
+    """The feature tracker's settings (sim/tracker/klt.py ``TrackerSettings``)."""
+
+    max_tracks: Annotated[int, Field(ge=1, le=10000)] = Field(default=150, description="live tracks at most")
+    min_tracks: Annotated[int, Field(ge=0)] = Field(default=80, description="re-detect below this many live tracks")
+    min_distance_px: Pos = Field(default=8.0, description="spacing of new features (px)")
+    window_px: Annotated[int, Field(ge=5, le=101)] = Field(default=21, description="KLT window (px, odd)")
+    levels: Annotated[int, Field(ge=0, le=8)] = Field(default=3, description="pyramid levels above the image")
+    fb_max_px: Pos = Field(default=0.5, description="temporal forward-backward round trip at most (px)")
+    lr_max_px: Pos = Field(default=0.5, description="stereo left-right round trip at most (px)")
+    row_max_px: Pos = Field(default=0.5, description="right-left row difference at most (px)")
+    min_ncc: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.85, description="a track ends when its window correlates less with its detection window")
+    detect_ncc: Annotated[float, Field(gt=0, le=1)] = Field(
+        default=0.9, description="stereo-match correlation a new track needs")
+    border_px: Annotated[int, Field(ge=0)] = Field(default=16, description="no features closer to the image border")
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.window_px % 2 == 0:
+            raise ValueError(f"window_px ({self.window_px}) must be odd")
+        if self.min_tracks > self.max_tracks:
+            raise ValueError(f"min_tracks ({self.min_tracks}) must not exceed max_tracks ({self.max_tracks})")
+        return self
+
+
+class ImagesConfig(_Model):
+    """Rendered stereo images and the feature tracker (``measurements.source: images``, docs/images.md)."""
+
+    detector: Literal[DETECTORS] = Field(default="gftt", description="feature detector of the tracker")
+    sensor: ImageSensorConfig = ImageSensorConfig()
+    panels: bool | PanelsConfig = Field(
+        default=False,
+        description="solar-panel wings beside the body: false, true (the default wings) or `{span_m, width_m, "
+        "thickness_m, gap_m, axis, normal_axis}` (docs/images.md)",
+    )
+    supersample: Annotated[int, Field(ge=1, le=8)] = Field(default=1, description="rays per pixel along each axis")
+    ambient: Annotated[float, Field(ge=0, le=1)] = Field(
+        default=0.0, description="diffuse light from everywhere, a fraction of the Sun's")
+    cache: bool = Field(
+        default=True,
+        description="keep the rendered radiance of a shared truth on disk (keyed by the poses, camera, target, "
+        "panels, Sun and render settings) and reuse it",
+    )
+    tracker: TrackerConfig = TrackerConfig()
+
+
+class TracksConfig(_Model):
+    """The user's own tracks (``measurements.source: tracks``, docs/images.md "Your own tracks")."""
+
+    file: Annotated[str, Field(min_length=1)] = Field(
+        description="track table (Parquet or CSV); a relative path is taken from the scenario file's folder")
+    truth_file: Annotated[str, Field(min_length=1)] | None = Field(
+        default=None, description="optional true state per step (Parquet or CSV), same folder rule")
+
+
+MEASUREMENT_SOURCES = ("model", "images", "tracks")
+
+
 class MeasurementsConfig(_Model):
+    source: Literal[MEASUREMENT_SOURCES] = Field(
+        default="model",
+        description="model: the point model (N fixed points, Gaussian noise); images: rendered stereo images and "
+        "the feature tracker; tracks: a file of your own tracks (docs/images.md)",
+    )
+    images: ImagesConfig = ImagesConfig()
+    tracks: TracksConfig | None = Field(
+        default=None, description="`{file, truth_file}` of source tracks (docs/images.md, Your own tracks)"
+    )
     image_sigma: NonNeg = 1e-5
     flow_sigma: NonNeg = 1e-5
     disparity: bool = False
@@ -290,6 +396,23 @@ class MeasurementsConfig(_Model):
         description="tracker outliers `{probability: p, model: uniform_image | swapped_feature}` (per feature and "
         "step; model default uniform_image); see docs/realism.md",
     )
+
+    @model_validator(mode="after")
+    def _source_keys(self):
+        # each message starts with the key that is set: the loader reports that key's line
+        if self.images != ImagesConfig() and self.source != "images":  # the defaults: a dumped scenario reloads
+            raise ValueError(f"images needs source: images (source is {self.source})")
+        if self.tracks is not None and self.source != "tracks":
+            raise ValueError(f"tracks needs source: tracks (source is {self.source})")
+        if self.source == "tracks" and self.tracks is None:
+            raise ValueError("source tracks needs tracks: {file: ...}")
+        if self.source != "model":
+            for key, on in (("dropout_probability", self.dropout_probability > 0), ("outliers", self.outliers),
+                            ("occlusion", self.occlusion)):  # fmt: skip
+                if on:
+                    raise ValueError(f"{key} is a point-model effect; with source: {self.source} the tracker (or your "
+                                     "file) decides what is measured")
+        return self
 
     @property
     def disparity_sigma_value(self) -> float:
@@ -485,6 +608,15 @@ class Scenario(_Model):
         if self.camera.resolution_px is None and (m.image_sigma_px is not None or m.flow_sigma_pxps is not None):
             key = "image_sigma_px" if m.image_sigma_px is not None else "flow_sigma_pxps"
             raise ValueError(f"measurements.{key} needs camera.resolution_px (a pixel camera)")
+        slots = self.target.feature_slots is not None
+        if m.source == "model" and slots:
+            raise ValueError("target.feature_slots needs measurements.source images or tracks")
+        if m.source != "model" and not slots:
+            raise ValueError(f"measurements.source {m.source} needs target.feature_slots (the number of feature slots)")
+        if m.source != "model" and self.camera.resolution_px is None:
+            raise ValueError(f"measurements.source {m.source} needs camera.resolution_px (a pixel camera)")
+        if m.source == "images" and self.target.shape is None:
+            raise ValueError("measurements.source images needs target.shape (the body to render)")
         if self.target.shape is None and (m.occlusion or m.illumination is not None):
             key = "occlusion" if m.occlusion else "illumination"
             raise ValueError(f"measurements.{key} needs target.shape")

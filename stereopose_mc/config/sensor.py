@@ -119,8 +119,14 @@ def shape_of(s: Scenario) -> shapes.Shape | None:
 
 
 def feature_points_of(s: Scenario, shape: shapes.Shape | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Feature points ``(N, 3)`` in the target frame and (with a shape) their outward normals."""
+    """Feature points ``(N, 3)`` in the target frame and (with a shape) their outward normals.
+
+    With ``feature_slots`` (tracks fill the slots as they come and go) there are no fixed points: ``N`` zero
+    points and no normals (the slots' true points vary per step, sim/slots.py).
+    """
     t = s.target
+    if t.feature_slots is not None:
+        return np.zeros((t.feature_slots, 3)), None
     shape = shape if shape is not None else shape_of(s)
     if t.feature_points is None:
         pts = np.asarray(t.feature_points_m, dtype=float)
@@ -132,6 +138,8 @@ def feature_points_of(s: Scenario, shape: shapes.Shape | None = None) -> tuple[n
 def feature_count(s: Scenario) -> int:
     """Number of feature points of a scenario (without reading a mesh)."""
     t = s.target
+    if t.feature_slots is not None:
+        return t.feature_slots
     return len(t.feature_points_m) if t.feature_points is None else t.feature_points.sample_on_surface
 
 
