@@ -30,6 +30,7 @@ from stereopose_mc.config.resolve import setup_of
 from stereopose_mc.sim.render import renderer as rr, sensor as ss
 from stereopose_mc.sim.render.scene import Panels
 from stereopose_mc.sim.render.setup import ImageSetup, image_setup
+from stereopose_mc.sim import tracks_file
 from stereopose_mc.sim.tracker import audit, klt
 from stereopose_mc.sim.truth import simulate_truth
 
@@ -131,10 +132,24 @@ def schema_table(columns: dict) -> str:
     return "\n".join(["| column | type | meaning |", "|---|---|---|"] + [f"| `{a}` | {b} | {c} |" for a, b, c in rows])
 
 
+def schemas(text: str) -> str:
+    """``text`` with the generated schema tables: the tracker's, the audit's, a track file's, a truth file's."""
+    for name, cols in (("tracks-schema", klt.COLUMNS), ("audit-schema", audit.AUDIT_COLUMNS),
+                       ("tracks-file-schema", tracks_file.TRACK_FILE_COLUMNS),
+                       ("truth-file-schema", tracks_file.TRUTH_FILE_COLUMNS)):  # fmt: skip
+        text = splice(text, name, schema_table(cols), DOC)
+    return text
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=100, help="steps of the truth to render (default 100)")
+    ap.add_argument("--schemas-only", action="store_true", help="only the schema tables (no rendering, seconds)")
     args = ap.parse_args(argv)
+    if args.schemas_only:
+        DOC.write_text(schemas(DOC.read_text(encoding="utf-8")), encoding="utf-8")
+        print(f"-> {DOC} (schema tables)")
+        return 0
     t_start = time.perf_counter()
     FIGS.mkdir(parents=True, exist_ok=True)
     rows, frames_md = [], []
@@ -155,8 +170,7 @@ def main(argv=None) -> int:
     text = DOC.read_text(encoding="utf-8")
     text = splice(text, "detectors", markdown(table), DOC)
     text = splice(text, "frames", "\n".join(frames_md), DOC)
-    text = splice(text, "tracks-schema", schema_table(klt.COLUMNS), DOC)
-    text = splice(text, "audit-schema", schema_table(audit.AUDIT_COLUMNS), DOC)
+    text = schemas(text)
     text = splice(text, "run", f"Last run: {args.steps} steps, {time.perf_counter() - t_start:.0f} s of wall time.", DOC)
     DOC.write_text(text, encoding="utf-8")
     print(markdown(table))

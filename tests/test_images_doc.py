@@ -7,6 +7,7 @@ from pathlib import Path
 
 from doc_scripts import load_doc_script
 
+from stereopose_mc.sim import tracks_file
 from stereopose_mc.sim.tracker import audit, klt
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,7 +20,9 @@ def _block(text: str, name: str) -> str:
 
 def test_schema_tables_list_exactly_the_columns_the_code_writes():
     text = DOC.read_text(encoding="utf-8")
-    for name, cols in (("tracks-schema", klt.COLUMNS), ("audit-schema", audit.AUDIT_COLUMNS)):
+    for name, cols in (("tracks-schema", klt.COLUMNS), ("audit-schema", audit.AUDIT_COLUMNS),
+                       ("tracks-file-schema", tracks_file.TRACK_FILE_COLUMNS),
+                       ("truth-file-schema", tracks_file.TRUTH_FILE_COLUMNS)):  # fmt: skip
         listed = re.findall(r"^\| `(\w+)` \|", _block(text, name), flags=re.MULTILINE)
         assert listed == list(cols), name
     mi = load_doc_script("make_images")

@@ -329,10 +329,10 @@ class ImagesConfig(_Model):
 
     detector: Literal[DETECTORS] = Field(default="gftt", description="feature detector of the tracker")
     sensor: ImageSensorConfig = ImageSensorConfig()
-    panels: bool | PanelsConfig = Field(
-        default=False,
-        description="solar-panel wings beside the body: false, true (the default wings) or `{span_m, width_m, "
-        "thickness_m, gap_m, axis, normal_axis}` (docs/images.md)",
+    panels: PanelsConfig | None = Field(
+        default=None,
+        description="solar-panel wings beside the body: false or null (none), true (the default wings) or `{span_m, "
+        "width_m, thickness_m, gap_m, axis, normal_axis}` (docs/images.md)",
     )
     supersample: Annotated[int, Field(ge=1, le=8)] = Field(default=1, description="rays per pixel along each axis")
     ambient: Annotated[float, Field(ge=0, le=1)] = Field(
@@ -343,6 +343,14 @@ class ImagesConfig(_Model):
         "panels, Sun and render settings) and reuse it",
     )
     tracker: TrackerConfig = TrackerConfig()
+
+    @field_validator("panels", mode="before")
+    @classmethod
+    def _panels_switch(cls, v):
+        """``true``: the default wings; ``false``: none (so a wrong mapping is reported by its keys)."""
+        if isinstance(v, bool):
+            return {} if v else None
+        return v
 
 
 class TracksConfig(_Model):
@@ -400,12 +408,12 @@ class MeasurementsConfig(_Model):
     @model_validator(mode="after")
     def _source_keys(self):
         # each message starts with the key that is set: the loader reports that key's line
+        if self.source == "tracks" and self.tracks is None:
+            raise ValueError("source tracks needs tracks: {file: ...}")
         if self.images != ImagesConfig() and self.source != "images":  # the defaults: a dumped scenario reloads
             raise ValueError(f"images needs source: images (source is {self.source})")
         if self.tracks is not None and self.source != "tracks":
             raise ValueError(f"tracks needs source: tracks (source is {self.source})")
-        if self.source == "tracks" and self.tracks is None:
-            raise ValueError("source tracks needs tracks: {file: ...}")
         if self.source != "model":
             for key, on in (("dropout_probability", self.dropout_probability > 0), ("outliers", self.outliers),
                             ("occlusion", self.occlusion)):  # fmt: skip

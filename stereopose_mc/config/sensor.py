@@ -45,6 +45,15 @@ class PixelCamera:
     cx: float
     cy: float
 
+    def normalized(self, col, row):
+        """Normalized image coordinates ``(u, v)`` of image positions ``(col, row)`` (px):
+        ``u = (col - c_x) / f_px``, ``v = (row - c_y) / f_px``."""
+        return (np.asarray(col, dtype=float) - self.cx) / self.f_px, (np.asarray(row, dtype=float) - self.cy) / self.f_px
+
+    def pixels(self, u, v):
+        """Image positions ``(col, row)`` (px) of normalized coordinates ``(u, v)``: ``col = c_x + f_px u``."""
+        return self.cx + self.f_px * np.asarray(u, dtype=float), self.cy + self.f_px * np.asarray(v, dtype=float)
+
     def bounds(self) -> tuple[float, float, float, float]:
         """The image in normalized coordinates: ``(u_min, u_max, v_min, v_max)``."""
         return (-self.cx / self.f_px, (self.width - self.cx) / self.f_px,

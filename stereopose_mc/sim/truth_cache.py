@@ -163,12 +163,17 @@ def store(path: Path, key: str, truth: Truth) -> None:
     arrays = {name: getattr(truth, name) for name in ARRAYS}
     if truth.filter_orbits is not None:
         arrays["orbits"] = np.array([[getattr(o, f) for f in ORBIT_FIELDS] for o in truth.filter_orbits], dtype=float)
+    store_npz(path, key=np.array(key), **arrays)
+
+
+def store_npz(path: Path, **arrays) -> None:
+    """``np.savez`` of ``arrays`` to ``path`` atomically (temporary file, then rename); any failure is ignored."""
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, key=np.array(key), **arrays)
+            np.savez(fh, **arrays)
         os.replace(tmp, path)
         tmp = None
     except (OSError, ValueError):

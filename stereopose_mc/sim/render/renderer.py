@@ -100,8 +100,7 @@ def pixel_grid(camera: PixelCamera, supersample: int = 1) -> tuple[Array, Array]
 
 def directions_L(camera: PixelCamera, col: Array, row: Array) -> Array:
     """Unit ray directions in ``L`` ``(..., 3)`` through image positions ``(col, row)``."""
-    u = (np.asarray(col, dtype=float) - camera.cx) / camera.f_px
-    v = (np.asarray(row, dtype=float) - camera.cy) / camera.f_px
+    u, v = camera.normalized(col, row)
     d = np.stack([u, np.ones_like(u), v], axis=-1)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
@@ -111,7 +110,7 @@ def project_px(camera: PixelCamera, rig_baseline: float, p_L: Array, cam: str) -
     projection)."""
     x = p_L[..., 0] - (rig_baseline if cam == "left" else 0.0)
     u, v = x / p_L[..., 1], p_L[..., 2] / p_L[..., 1]
-    return np.stack([camera.cx + camera.f_px * u, camera.cy + camera.f_px * v], axis=-1)
+    return np.stack(camera.pixels(u, v), axis=-1)
 
 
 def cast(scene: Scene, rig: Rig, rho: Array, D: Array, cam: str, col: Array, row: Array) -> Hits:
