@@ -266,6 +266,8 @@ def campaign_tracks(scenario: Scenario, setup: Setup, truth: Truth, trials, seed
     lives (None: :func:`default_cache_dir`; ``SPMC_NO_CACHE`` turns it off). ``progress(stage, done, total)``.
     """
     trials = [int(j) for j in trials]
+    if not trials:
+        return pd.DataFrame({c: pd.Series(dtype=v.split(":")[0]) for c, v in TRACK_TABLE_COLUMNS.items()})
     cfg = image_config(scenario)
     img = image_setup(scenario, cfg.panels)
     x = np.asarray(truth.x)
@@ -288,6 +290,4 @@ def campaign_tracks(scenario: Scenario, setup: Setup, truth: Truth, trials, seed
         out.append(trial_tracks(r, img, poses, cfg, setup.dt, seed, j, t0))
         if progress is not None:
             progress("track", i + 1, len(trials))
-    if not out:
-        return pd.DataFrame({c: pd.Series(dtype=v.split(":")[0]) for c, v in TRACK_TABLE_COLUMNS.items()})
     return pd.concat(out, ignore_index=True)
