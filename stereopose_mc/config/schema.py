@@ -625,6 +625,18 @@ class Scenario(_Model):
             raise ValueError(f"measurements.source {m.source} needs camera.resolution_px (a pixel camera)")
         if m.source == "images" and self.target.shape is None:
             raise ValueError("measurements.source images needs target.shape (the body to render)")
+        if m.source != "model":
+            for f in self.filters:  # feature slots live in an error-state chart (filters/slots.py)
+                if getattr(f, "error_state", "aligned") == "full":
+                    raise ValueError(f"filter {f.label}: error_state full cannot hold feature slots (measurements."
+                                     f"source {m.source}); use aligned (the default) or attitude")  # fmt: skip
+            if self.initial_estimate.method == "measurements":
+                raise ValueError(f"initial_estimate.method measurements needs the image velocities of the first frame, "
+                                 f"which tracks do not have (measurements.source {m.source}): the slots are "
+                                 f"initialized from their first stereo frame anyway")  # fmt: skip
+            if self.dispersions is not None and self.dispersions.specs:
+                raise ValueError(f"dispersions with measurements.source {m.source} are not supported yet: the "
+                                 "campaign renders and tracks one shared truth")  # fmt: skip
         if self.target.shape is None and (m.occlusion or m.illumination is not None):
             key = "occlusion" if m.occlusion else "illumination"
             raise ValueError(f"measurements.{key} needs target.shape")

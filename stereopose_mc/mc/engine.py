@@ -98,6 +98,19 @@ def prepare(scn: Scenario) -> Prepared:
     except RuntimeError as exc:  # an integration that hit its limit
         raise RunError(f"{scn.name}: the true trajectory cannot be integrated ({exc}); check orbit, "
                        "initial_state and truth_model") from None  # fmt: skip
+    if scn.measurements.source == "tracks":  # the truth file's states, or none (mc/tracked.py)
+        from ..sim import tracks_file  # pandas: only runs measured by tracks import it
+        from . import tracked
+
+        try:
+            truth = tracked.file_truth(scn, setup, truth)
+            tracked.file_tracks(scn, setup)  # read and checked once, before any chunk
+        except tracks_file.TracksFileError as exc:
+            raise RunError(str(exc)) from None
+        if setup.pseudo and scn.measurements.tracks.truth_file is None and setup.alpha_method == "truth_plus_noise":
+            raise RunError(f"{scn.name}: measurements.inertia_pseudo_measurement needs the true angular acceleration "
+                           "(measurements.tracks.truth_file) or a differentiated angular_acceleration_source "
+                           "(docs/angular-acceleration.md)")  # fmt: skip
     exact = meas.noise_free(setup, truth)
     filters = [filter_setup_of(f, setup) for f in scn.filters]
     d = scn.divergence
@@ -121,6 +134,7 @@ class ChunkOutput:
     wall_s: float
     diverged: int
     diverged_by: dict[str, int] = field(default_factory=dict)  # per filter
+    tracks_table: pa.Table | None = None  # measurements.source images | tracks: the chunk's tracks (and audit)
 
 
 _PREPARE_LOCK = threading.Lock()  # threads of one process share prepare()'s cache: compute it once
@@ -137,7 +151,14 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
     with threadpool_limits(limits=1):
         with _PREPARE_LOCK:
             scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
-        if dispersed.has_dispersions(scn):
+        tracks = None
+        if scn.measurements.source != "model":  # tracks fill the filters' feature slots
+            from . import tracked  # pandas, OpenCV: only runs measured by tracks import them
+
+            tracks = tracked.tracks_for(scn, setup, truth, np.asarray(trials))
+            res, disp = tracked.run_chunk(scn, np.asarray(trials), setup, truth, exact, filters, bounds, tracks,
+                                          kernels, tick), None  # fmt: skip
+        elif dispersed.has_dispersions(scn):
             res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels, tick)
         else:
             res, disp = run_chunk(scn.seed, np.asarray(trials), setup, truth, exact, filters, bounds, kernels,
@@ -154,8 +175,9 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
     first = int(np.min(trials))
     timing = tables.arrow_table(rows.timing_columns(res, first))
     by = {label: int(tc["diverged"][tc["filter"] == label].sum()) for label in dict.fromkeys(tc["filter"].tolist())}
+    tt = None if tracks is None else tables.arrow_table(tables.columns_of(tracks))
     return ChunkOutput(np.asarray(trials), tables.arrow_table(tc), ts, timing, res.runtime_s,
-                       int(tc["diverged"].sum()), by)  # fmt: skip
+                       int(tc["diverged"].sum()), by, tt)  # fmt: skip
 
 
 def plan_chunks(todo: np.ndarray, chunk_size: int) -> list[np.ndarray]:
@@ -232,6 +254,8 @@ def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: 
             "stereopose_mc.last": str(last)}  # fmt: skip
     if out.timeseries_table is not None and out.timeseries_table.num_rows:
         _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_table, meta)
+    if out.tracks_table is not None:
+        _write_table(chunk_dir / _chunk_name("tracks", out.trials), out.tracks_table, meta)
     _write_table(chunk_dir / _chunk_name("timing", out.trials), out.timing_table, meta)
     _write_table(chunk_dir / _chunk_name("trials", out.trials), out.trials_table, meta)
     integrity.write_sidecar(chunk_dir, spec, first, last, out.diverged_by)
@@ -462,6 +486,10 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
                                           units=tables.COLUMN_UNITS)
         if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
             raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
+    files = sorted(chunk_dir.glob("tracks-*.parquet"))  # measurements.source images | tracks
+    if files:
+        store.write_parquet_stream(out / "tracks.parquet", files, _parquet_meta(scn, shash, "tracks"),
+                                   units=tables.COLUMN_UNITS)  # fmt: skip
     excl = scn.divergence.exclude_inconsistent
     pt = percentile_columns(trials, list(scn.percentiles), excl)
     store.atomic_write_text(out / "percentiles.csv", tables.csv_text(pt))

@@ -200,6 +200,7 @@ def run_filter(
     kernels: str = "numpy",
     tick: Callable[[int], None] | None = None,
     slots: sl.Schedule | None = None,
+    extra_var: Array | None = None,
 ) -> FilterRun:
     """Run one filter over a chunk of trials.
 
@@ -211,7 +212,8 @@ def run_filter(
     every ``n`` trial-steps done (``B`` per step; a chunk's lost trials count as done), for progress.
     ``slots``: the state's point blocks are feature slots (``filters.slots``): at each step, after the prediction,
     slots whose track ended are freed and slots with a new track are initialized from its measurement (``visible``
-    leaves those out of the update); the NEES count the occupied slots only.
+    leaves those out of the update); the NEES count the occupied slots only. ``extra_var (B, K+1, N, C)``: added to
+    the features' R (a track file's own sigmas above the filter's).
     """
     stepper = step_functions(kernels)
     B, n = x0_hat.shape
@@ -298,6 +300,8 @@ def run_filter(
                     if alpha_var is None:
                         alpha_var = np.full((B, 3), fs.sigma_alpha**2)
                     alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
+        if extra_var is not None:
+            feature_var = extra_var[:, k] if feature_var is None else feature_var + extra_var[:, k]
         measured = StepData(y_feat[:, k], np.nan_to_num(a_k), truth.t[k], alpha_var, feature_var)
         with np.errstate(all="ignore"):
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial

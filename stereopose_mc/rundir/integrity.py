@@ -74,6 +74,9 @@ def expected_kinds(first: int, last: int, timeseries: str) -> list[str]:
     return ["trials", "timing"] + (["timeseries"] if ts else [])
 
 
+OPTIONAL_KINDS = ("tracks",)  # measurements.source images | tracks: the chunk's track table (rows: as many as tracked)
+
+
 def ts_trials(first: int, last: int, timeseries: str) -> int:
     """How many of the chunk's trials are in the time series."""
     if timeseries == "full":
@@ -105,6 +108,10 @@ def write_sidecar(chunk_dir: Path, spec: RunSpec, first: int, last: int, diverge
         name = chunk_file(kind, first, last)
         if (chunk_dir / name).is_file():
             files[name] = {"sha256": file_sha256(chunk_dir / name), "rows": spec.rows(kind, first, last)}
+    for kind in OPTIONAL_KINDS:
+        name = chunk_file(kind, first, last)
+        if (chunk_dir / name).is_file():
+            files[name] = {"sha256": file_sha256(chunk_dir / name), "rows": store.parquet_rows(chunk_dir / name)}
     rec = {"run_id": spec.run_id, "first": first, "last": last, "steps": spec.steps, "files": files,
            "diverged": {k: int(v) for k, v in diverged.items()}}  # fmt: skip
     store.write_json(chunk_dir / sidecar_name(first, last), rec)
@@ -166,6 +173,13 @@ def _check_chunk(chunk_dir: Path, side: Path, spec: RunSpec, m: re.Match) -> str
             return f"{name}: {_foreign_reason(path, spec)}"
         if files[name].get("rows") != spec.rows(kind, first, last):
             return f"{name}: {files[name].get('rows')} rows recorded, {spec.rows(kind, first, last)} expected"
+    for kind in OPTIONAL_KINDS:  # recorded when the chunk has one: present, and with its recorded checksum
+        name = chunk_file(kind, first, last)
+        if name in files:
+            if not (chunk_dir / name).is_file():
+                return f"{name} is missing"
+            if file_sha256(chunk_dir / name) != files[name].get("sha256"):
+                return f"{name}: {_foreign_reason(chunk_dir / name, spec)}"
     return None
 
 

@@ -235,6 +235,13 @@ def read_parquet_metadata(path: Path) -> dict[str, str]:
     return {k.decode(): v.decode() for k, v in md.items()}
 
 
+def parquet_rows(path: Path) -> int:
+    """The number of rows of a Parquet file (from its footer)."""
+    import pyarrow.parquet as pq
+
+    return int(pq.ParquetFile(path).metadata.num_rows)
+
+
 TOOL_KINDS = ("run", "simulate", "dynamics", "sweep")  # the ``kind`` of the directories this tool writes
 
 
