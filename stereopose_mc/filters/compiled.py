@@ -39,9 +39,10 @@ from ..config.resolve import FilterSetup, Setup
 from ..core.kernels import aligned as ka
 from ..core.kernels import charts as kch
 from ..core.kernels import model as km
+from ..core.kernels import secondorder as kso
 from ..core.kernels import update as ku
 from ..core.kernels import writable as _writable
-from ..core.layout import CHART_ATTITUDE, CHART_FULL, CHARTS, n_channels, n_measurements
+from ..core.layout import CHART_ATTITUDE, CHART_FULL, CHARTS, E_POINTS, POINTS, n_channels, n_measurements
 from ..core.orbit import leader_kinematics
 from . import estimators, registry, relnav, ukf
 
@@ -158,6 +159,21 @@ def _charts(fs: FilterSetup) -> tuple:
     ``mekf.chart_of(fs)``'s numpy ones."""
     code = chart_code(fs)  # mekf.chart_of: the attitude chart for anything but "aligned"
     return (_batched(functools.partial(kch.chart_batch, code)), _batched(functools.partial(kch.local_batch, code)))
+
+
+def flow_linearization_variance(x: Array, P: Array, setup: Setup) -> Array:
+    """``relnav.flow_linearization_variance`` on the compiled kernel (``secondorder.flow_variance_batch``)."""
+    x, P = _writable(x), _writable(P)
+    w0 = relnav.omega_rows(x, P).start
+    p0 = POINTS if P.shape[-1] == x.shape[-1] else E_POINTS
+    return kso.flow_variance_batch(x, P, w0, p0, float(setup.baseline), bool(setup.disparity), float(setup.focal))
+
+
+def pseudo_linearization_variance(x: Array, P: Array, setup: Setup, t: float) -> Array:
+    """``relnav.pseudo_linearization_variance`` on the compiled kernel (``secondorder.pseudo_variance_batch``)."""
+    x, P = _writable(x), _writable(P)
+    _, nd, _ = _leader(setup.orbit, float(t))
+    return kso.pseudo_variance_batch(x, P, relnav.omega_rows(x, P).start, float(nd[0]))
 
 
 def step_model(setup: Setup, vis: Array, nd: float, ndd: float) -> km.StepModel:

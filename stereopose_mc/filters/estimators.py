@@ -7,6 +7,7 @@ every other that of an error state, ``n - 1`` (``filters/mekf.py``, ``filters/uk
 from __future__ import annotations
 
 from . import mekf, registry
+from .relnav import flow_linearization_variance, pseudo_linearization_variance  # noqa: F401 (the step's R terms)
 
 
 def error_state(fs) -> bool:

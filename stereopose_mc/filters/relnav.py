@@ -112,7 +112,7 @@ def measurement_model(setup: Setup, step: StepMeasurement):
     return measure
 
 
-def _omega_rows(x: Array, P: Array) -> slice:
+def omega_rows(x: Array, P: Array) -> slice:
     """``omega``'s rows in ``P``: the full state's (``P (b, n, n)``) or an error state's (``(b, n-1, n-1)``)."""
     at = lay.OMEGA if P.shape[-1] == x.shape[-1] else lay.E_OMEGA
     return slice(at, at + lay.VEC)
@@ -122,7 +122,7 @@ def pseudo_linearization_variance(x: Array, P: Array, setup: Setup, t: float) ->
     """``(b, 3)``: the variance the pseudo rows' linearization at ``x`` leaves out (``core.inertia``), from the
     ``omega`` and ``k`` blocks of ``P`` (``(b, n, n)`` or an error state's ``(b, n-1, n-1)``: ``omega`` sits at the same
     offset and ``k`` last in every chart, both additive)."""
-    w = _omega_rows(x, P)
+    w = omega_rows(x, P)
     nu_dot = leader_kinematics(setup.orbit, t).nu_dot
     return pseudo_second_order_variance(x, P[..., w, w], P[..., -2:, -2:], P[..., -2:, w], nu_dot)
 
@@ -146,7 +146,7 @@ def flow_linearization_variance(x: Array, P: Array, setup: Setup) -> Array:
     the ``omega`` block of ``P`` and each feature point's ``3 x 3`` block (the full state's or an error state's: the
     points are additive in every chart; the aligned chart's, in the rotated body frame, to first order the same)."""
     N = st.n_points(x.shape[-1])
-    w = _omega_rows(x, P)
+    w = omega_rows(x, P)
     p0 = (st.points_slice(N) if P.shape[-1] == x.shape[-1] else es.points_slice(N)).start
     idx = p0 + np.arange(3 * N).reshape(N, 3)
     P_pp = P[:, idx[:, :, None], idx[:, None, :]]  # (b, N, 3, 3)

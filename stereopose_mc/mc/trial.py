@@ -295,11 +295,11 @@ def run_filter(
         if fs.second_order:  # + the variance the flow and pseudo rows' linearization leaves out
             feature_var = np.zeros(y_feat.shape[:1] + y_feat.shape[2:])  # (B, N, C)
             with np.errstate(all="ignore"):
-                feature_var[active] = relnav.flow_linearization_variance(xa, Pa, setup_k)
+                feature_var[active] = stepper.flow_linearization_variance(xa, Pa, setup_k)
                 if pseudo_k:
                     if alpha_var is None:
                         alpha_var = np.full((B, 3), fs.sigma_alpha**2)
-                    alpha_var[active] += relnav.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
+                    alpha_var[active] += stepper.pseudo_linearization_variance(xa, Pa, setup_k, truth.t[k])
         if extra_var is not None:
             feature_var = extra_var[:, k] if feature_var is None else feature_var + extra_var[:, k]
         measured = StepData(y_feat[:, k], np.nan_to_num(a_k), truth.t[k], alpha_var, feature_var)
