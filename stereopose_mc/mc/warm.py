@@ -91,7 +91,27 @@ def warm(config_dir: Path = ROOT / "configs", steps: int = WARM_STEPS, echo=prin
             t1 = time.perf_counter()
             engine.run(scn, Path(tmp) / name, opts)
             echo(f"warm: {name} {time.perf_counter() - t1:.1f} s")
+    warm_numpy_fallback(Path(config_dir) / WARM_SCENARIOS[0])
     return time.perf_counter() - t0
+
+
+def warm_numpy_fallback(path: Path) -> None:
+    """The compiled measurement model of the trials the update kernels leave to numpy's update (a factorization
+    that failed: ``filters.compiled.numpy_update``), which a few steps of healthy trials never call: ``h`` and the
+    dense ``H`` of a step of ``path``'s scenario at its initial state."""
+    import numpy as np
+
+    from ..config import load_scenario
+    from ..config.resolve import setup_of
+    from ..filters import compiled, relnav
+
+    if not path.is_file():
+        return
+    setup = setup_of(load_scenario(path))
+    x = setup.x0[None, :].copy()
+    step = relnav.StepMeasurement(y=np.zeros((1, 0)), alpha=np.zeros((1, 3)), visible=np.ones(setup.n_points, bool),
+                                  t=setup.dt)  # fmt: skip
+    compiled.measurement_model(setup, step)(x, np.arange(1), True)
 
 
 def main(argv: list[str] | None = None) -> int:

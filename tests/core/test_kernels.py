@@ -566,6 +566,28 @@ def test_row_kernels_read_rows_in_place(n):
         assert read(B, i * n + j) == B[i, j]
 
 
+@pytest.mark.parametrize("n", [1, 5, 29, 70])
+def test_sparse_rows_product_equals_the_dense_product(n):
+    """``rows._sparse_rows_product`` from ``_row_nonzeros`` is ``Y M`` (to round-off) for rows with 0 to ``n``
+    non-zeros, and its ``lower`` form is the lower triangle of that product."""
+    from stereopose_mc.core.kernels import rows as kr
+
+    rng = np.random.default_rng(700 + n)
+    Y, M = rng.standard_normal((2, n, n))
+    Y[rng.random((n, n)) < 0.7] = 0.0  # rows of every density: one empty, one dense
+    Y[0] = 0.0
+    Y[-1] = rng.standard_normal(n)
+    nz, cnt = np.empty((n, n), np.int64), np.empty(n, np.int64)
+    kr._row_nonzeros(Y, nz, cnt)
+    assert cnt.tolist() == np.count_nonzero(Y, axis=1).tolist()
+    O = np.full((n, n), np.nan)
+    kr._sparse_rows_product(Y, nz, cnt, M, O, False)
+    np.testing.assert_allclose(O, Y @ M, rtol=1e-13, atol=1e-13 * np.abs(M).max() * n)
+    L = np.full((n, n), 7.0)
+    kr._sparse_rows_product(Y, nz, cnt, M, L, True)
+    assert np.array_equal(np.tril(L), np.tril(O)) and np.array_equal(np.triu(L, 1), np.triu(np.full((n, n), 7.0), 1))
+
+
 def test_cached_kernels_load_and_run_in_a_new_process(tmp_path):
     """Numba's on-disk cache: the kernels compiled here (and saved) load and run in a fresh process. (A recursive
     call between two specializations compiled fine but its cached copy did not link: a segfault on reload.)"""

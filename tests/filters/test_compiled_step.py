@@ -97,6 +97,19 @@ class _Both:
         self.kind.append("predict")
         return a
 
+    def _second_order(self, name, x, P, *args):
+        """The second-order R term ``name`` of both paths (the same to round-off on sane trials); numpy's."""
+        a, b = getattr(self.np, name)(x, P, *args), getattr(self.nb, name)(x, P, *args)
+        ok = self.sane(x, P)
+        np.testing.assert_allclose(b[ok], a[ok], rtol=1e-10, atol=0.0)
+        return a
+
+    def flow_linearization_variance(self, x, P, setup):
+        return self._second_order("flow_linearization_variance", x, P, setup)
+
+    def pseudo_linearization_variance(self, x, P, setup, t):
+        return self._second_order("pseudo_linearization_variance", x, P, setup, t)
+
     def update(self, x, P, step, rows, fs, setup):
         a = self.np.update(x, P, step, rows, fs, setup)  # raises first when the batch fails (then bisected)
         b = self.nb.update(x, P, step, rows, fs, setup)

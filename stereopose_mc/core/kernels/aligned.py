@@ -43,7 +43,7 @@ from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT
                       POINTS, QUAT, R_K, REDUCED, RHO, RHO_DOT, VEC, e_n_points)  # fmt: skip
 from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, n_measurements, row_columns
 from .model import n_points as _n_points
-from .rows import _mirror_lower
+from .rows import _mirror_lower, _row_nonzeros, _sparse_rows_product
 
 _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
 
@@ -380,10 +380,13 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     Sc = np.empty((REDUCED, ne))
     Y = np.empty((ne, ne))
     M = np.empty((ne, ne))
+    Y2 = np.empty((ne, ne))
+    nz = np.empty((ne, ne), np.int64)
+    cnt = np.empty(ne, np.int64)
     e0 = np.zeros(ne)
-    own = (S, T, QT, W, Sp, PS, Sc, Y, M, e0)  # borrowed below (_refs), kept to the end
+    own = (S, T, QT, W, Sp, PS, Sc, Y, M, Y2, e0)  # borrowed below (_refs), kept to the end
     x, x_pred, Tb, P, Q, outb = borrow((x, x_pred, Tb, P, Q, out))
-    S, T, QT, W, Sp, PS, Sc, Y, M, e0 = borrow(own)
+    S, T, QT, W, Sp, PS, Sc, Y, M, Y2, e0 = borrow(own)
     for b in range(B):
         if chart == CHART_ALIGNED:
             _chart_jacobian(x[b], e0, S)
@@ -404,9 +407,13 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
             _apply_error_map(T, N, PS, Y, Sp)
         else:
             np.dot(T, PS, Y)
-        np.dot(Y, P[b], M)  # M = Phi_e P
         Pb = outb[b]
-        np.dot(Y, M.T, Pb)  # Phi_e M^T
+        _row_nonzeros(Y, nz, cnt)  # Phi_e is the identity but for a few rows: products from its rows' non-zeros
+        _sparse_rows_product(Y, nz, cnt, P[b], M, False)  # M = Phi_e P
+        for r in range(ne):  # Mt = M^T
+            for j in range(ne):
+                Y2[r, j] = M[j, r]
+        _sparse_rows_product(Y, nz, cnt, Y2, Pb, True)  # Phi_e M^T, its lower triangle
         for j in range(n):
             for r in range(ne):
                 QT[j, r] = Q[b, j] * T[r, j]

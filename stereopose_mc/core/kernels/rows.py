@@ -116,3 +116,43 @@ def _dot_rows(M, i, V, j, lo, hi):
 def _dot(a, b, lo, hi):
     """``sum_{lo <= k < hi} a[k] b[k]`` of two vectors: ``_dot_row`` on ``a`` as a one-row matrix."""
     return _dot_row(a.reshape((1, a.shape[0])), 0, b, lo, hi)
+
+
+@njit(**_JIT)
+def _row_nonzeros(Y, nz, cnt):
+    """``cnt[r]`` and ``nz[r, :cnt[r]]``: the columns of row ``r`` of ``Y`` that are not zero, in increasing order."""
+    for r in range(Y.shape[0]):
+        c = 0
+        for k in range(Y.shape[1]):
+            if Y[r, k] != 0.0:
+                nz[r, c] = k
+                c += 1
+        cnt[r] = c
+
+
+@njit(**_JIT)
+def _sparse_rows_product(Y, nz, cnt, M, O, lower):
+    """``O = Y M`` from the non-zeros of ``Y``'s rows (``_row_nonzeros``): ``O[r] = sum_j Y[r, k_j] M[k_j]`` over
+    ``k_j = nz[r, j]``, four rows of ``M`` per pass (contiguous, in a fixed order: a trial's bits depend on its
+    own inputs only); ``lower``: only the columns ``c <= r`` of each row (a symmetric product mirrored after).
+
+    A row of ``Y`` with ``k`` non-zeros costs ``k`` scaled rows of ``M`` instead of its full length: the
+    transition of an error-state chart is the identity but for a few dense rows (``aligned.predict_covariance_batch``).
+    """
+    for r in range(O.shape[0]):
+        m = r + 1 if lower else O.shape[1]
+        for c in range(m):
+            O[r, c] = 0.0
+        j, end = 0, cnt[r]
+        while j + 4 <= end:
+            k0, k1, k2, k3 = nz[r, j], nz[r, j + 1], nz[r, j + 2], nz[r, j + 3]
+            a0, a1, a2, a3 = Y[r, k0], Y[r, k1], Y[r, k2], Y[r, k3]
+            for c in range(m):
+                O[r, c] += (a0 * M[k0, c] + a1 * M[k1, c]) + (a2 * M[k2, c] + a3 * M[k3, c])
+            j += 4
+        while j < end:
+            k = nz[r, j]
+            a = Y[r, k]
+            for c in range(m):
+                O[r, c] += a * M[k, c]
+            j += 1
