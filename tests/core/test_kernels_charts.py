@@ -126,9 +126,10 @@ def test_measurement_jacobian_finite_differences(name):
 
 @pytest.mark.parametrize("name", CHARTS)
 @pytest.mark.parametrize("order", [2, 4])
-def test_covariance_predict_matches_the_dense_error_state_transition(name, order):
+@pytest.mark.parametrize("N", [4, 20])  # BLAS products; past 64 columns from the non-zeros of Phi_e's rows
+def test_covariance_predict_matches_the_dense_error_state_transition(name, order, N):
     code, ref = CHARTS[name]
-    x, _, _ = case(B=3, N=4)
+    x, _, _ = case(B=3, N=N)
     B, n = x.shape
     rng = np.random.default_rng(2)
     Fd = jacobians.F(x, 6.9e6, ND, NDD, 3.986004418e14)

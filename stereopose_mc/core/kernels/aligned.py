@@ -44,6 +44,7 @@ from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT
 from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, n_measurements, row_columns
 from .model import n_points as _n_points
 from .rows import _mirror_lower, _row_nonzeros, _sparse_rows_product
+from .whiten import LARGE_N
 
 _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
 
@@ -408,12 +409,16 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
         else:
             np.dot(T, PS, Y)
         Pb = outb[b]
-        _row_nonzeros(Y, nz, cnt)  # Phi_e is the identity but for a few rows: products from its rows' non-zeros
-        _sparse_rows_product(Y, nz, cnt, P[b], M, False)  # M = Phi_e P
-        for r in range(ne):  # Mt = M^T
-            for j in range(ne):
-                Y2[r, j] = M[j, r]
-        _sparse_rows_product(Y, nz, cnt, Y2, Pb, True)  # Phi_e M^T, its lower triangle
+        if ne > LARGE_N:  # Phi_e is the identity but for a few rows: products from its rows' non-zeros
+            _row_nonzeros(Y, nz, cnt)
+            _sparse_rows_product(Y, nz, cnt, P[b], M, False)  # M = Phi_e P
+            for r in range(ne):  # M^T
+                for j in range(ne):
+                    Y2[r, j] = M[j, r]
+            _sparse_rows_product(Y, nz, cnt, Y2, Pb, True)  # Phi_e M^T, its lower triangle
+        else:  # small states: BLAS is as fast
+            np.dot(Y, P[b], M)  # M = Phi_e P
+            np.dot(Y, M.T, Pb)  # Phi_e M^T
         for j in range(n):
             for r in range(ne):
                 QT[j, r] = Q[b, j] * T[r, j]
