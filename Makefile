@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench goldens validation realism filters-doc sensitivity-doc images-doc venv clean screenshots
+.PHONY: test demo bench goldens validation realism filters-doc sensitivity-doc images-doc images-campaign venv clean screenshots
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -56,6 +56,10 @@ realism: $(STAMP)
 # docs/images.md's detector comparison and example frames (about two minutes)
 images-doc: $(STAMP)
 	$(BIN)/python docs/make_images.py
+
+# docs/images.md's campaign table: configs/caseB-images.yaml (100 trials) beside its point-model twin (~15 min)
+images-campaign: $(STAMP)
+	$(BIN)/python docs/make_images_campaign.py
 
 # docs/filters.md's comparison tables: case-B campaigns (about 30 s), spliced between the doc's markers
 filters-doc: $(STAMP)

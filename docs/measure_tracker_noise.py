@@ -104,6 +104,15 @@ def main(argv=None) -> int:
         print(f"positions: 1.4826 MAD {1.4826 * np.median(np.abs(pos - np.median(pos))):.3f} px, RMS "
               f"{np.sqrt(np.mean(pos**2)):.3f} px; velocities: 1.4826 MAD "
               f"{1.4826 * np.median(np.abs(vel - np.median(vel))):.3f} px/s, RMS {np.sqrt(np.mean(vel**2)):.3f} px/s")
+    # what a track does after its detection (clean tracks): the jump to its first tracked position, and its drift
+    # from there to its last row (right column; the filter births a slot at the first tracked row, mc/tracked.py)
+    c = tr[tr["clean"].to_numpy()].assign(e=err[:, 0])
+    g = c.sort_values("step").groupby(["trial", "track_id"])["e"]
+    jump = g.first()
+    drift = (g.last() - g.first())[g.size() >= 10]
+    print(f"\nclean tracks, right column: jump from the detection to the first tracked frame RMS {np.sqrt(np.mean(jump**2)):.3f} px "
+          f"({jump.size} tracks); drift from there to the last row RMS {np.sqrt(np.mean(drift**2)):.3f} px, median |drift| "
+          f"{np.median(np.abs(drift)):.3f} px ({drift.size} tracks of >= 10 rows)")
     return 0
 
 

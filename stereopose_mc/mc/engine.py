@@ -155,9 +155,10 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
         if scn.measurements.source != "model":  # tracks fill the filters' feature slots
             from . import tracked  # pandas, OpenCV: only runs measured by tracks import them
 
-            tracks = tracked.tracks_for(scn, setup, truth, np.asarray(trials))
+            images = scn.measurements.source == "images"  # progress: the tracking's, not the filters'
+            tracks = tracked.tracks_for(scn, setup, truth, np.asarray(trials), tick)
             res, disp = tracked.run_chunk(scn, np.asarray(trials), setup, truth, exact, filters, bounds, tracks,
-                                          kernels, tick), None  # fmt: skip
+                                          kernels, None if images else tick), None  # fmt: skip
         elif dispersed.has_dispersions(scn):
             res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels, tick)
         else:
@@ -325,19 +326,20 @@ def auto_chunk_size(opts: RunOptions, n_trials: int) -> int:
     return int(max(1, min(AUTO_CHUNK_MAX, max(share, min(n_trials, AUTO_CHUNK_MIN)))))
 
 
-def local_backend(opts: RunOptions, n_chunks: int) -> str:
+def local_backend(opts: RunOptions, n_chunks: int, images: bool = False) -> str:
     """Where the chunks run: ``inline`` (this thread), ``threading``, ``loky`` or ``dask``.
 
     One job or one chunk runs inline (no pool to start); ``auto`` picks threads for the
     compiled kernels (they release the GIL, and a thread imports nothing) and loky
-    processes for the numpy kernels (numpy's small-array calls hold the GIL).
+    processes for the numpy kernels (numpy's small-array calls hold the GIL) and for
+    ``images`` campaigns (the tracker's Python and numpy work holds it).
     """
     if opts.backend == "dask":
         return "dask"
     if opts.jobs == 1 or n_chunks <= 1:
         return "inline"
     if opts.backend == "auto":
-        return "threading" if opts.kernels == "compiled" else "loky"
+        return "threading" if opts.kernels == "compiled" and not images else "loky"
     return opts.backend
 
 
@@ -401,7 +403,8 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
     (None: a plain dict, for this process's threads; a Manager's dict for loky processes); Dask's
     remote chunks are counted when they end.
     """
-    where = local_backend(opts, len(chunks))
+    images = json.loads(scenario_json)["measurements"].get("source") == "images"
+    where = local_backend(opts, len(chunks), images)
     if info is not None:
         info["ran_as"] = where
     if where in ("inline", "threading"):

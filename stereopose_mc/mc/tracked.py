@@ -77,18 +77,41 @@ def file_tracks(scn: Scenario, setup: Setup) -> pd.DataFrame:
     return _file_tracks(scn.measurements.tracks.file, setup.dt)
 
 
-def tracks_for(scn: Scenario, setup: Setup, truth: Truth, trials: NDArray[np.int64]) -> pd.DataFrame:
+def tracks_for(scn: Scenario, setup: Setup, truth: Truth, trials: NDArray[np.int64],
+               tick: Callable[[int], None] | None = None) -> pd.DataFrame:  # fmt: skip
     """The track table of ``trials`` (a ``trial`` column): rendered and tracked (``images``), or the file's rows
-    (``tracks``: its trial ``j``'s, or trial 0's for every trial when the file has one trial)."""
+    (``tracks``: its trial ``j``'s, or trial 0's for every trial when the file has one trial).
+
+    ``tick(n)``: progress in trial-steps (``run_filter``'s unit); an images campaign counts a trial's steps of
+    every filter when its tracking ends (tracking is most of its time), and its filters then count nothing.
+    """
     if scn.measurements.source == "images":
         from ..sim import images  # OpenCV and the renderer: imported only by image campaigns
 
-        return images.campaign_tracks(scn, setup, truth, trials, scn.seed)
+        per_trial = setup.steps * len(scn.filters)
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if tick is not None and stage == "track":
+                tick(per_trial)
+
+        return images.campaign_tracks(scn, setup, truth, trials, scn.seed, progress=progress)
     df = file_tracks(scn, setup)
     if df["trial"].nunique() == 1:
         base = df.drop(columns="trial")
         return pd.concat([base.assign(trial=int(j)) for j in trials], ignore_index=True)[df.columns]
     return df[df["trial"].isin(np.asarray(trials))].reset_index(drop=True)
+
+
+def used_rows(tracks: pd.DataFrame) -> pd.DataFrame:
+    """The rows the filters use: every track's rows but its first (its detection).
+
+    A track enters its slot at its first *tracked* row. The detection's position differs from where the tracker then
+    holds the feature by a fraction of a pixel (``docs/measure_tracker_noise.py`` prints the jump): born from the
+    detection, a slot would start that far off, and the first image velocity (detection to first tracked frame)
+    would carry the jump; the velocities of every slot born at the start then bias omega at the first update.
+    """
+    first = tracks.groupby(["trial", "track_id"], sort=False)["step"].transform("min")
+    return tracks[tracks["step"].to_numpy() > first.to_numpy()]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,7 +139,7 @@ def slot_data(tracks: pd.DataFrame, trials: NDArray[np.int64], setup: Setup, scn
     body = np.full((B, K + 1, N, 3), np.nan)
     sig = np.full((B, K + 1, N, 2), np.nan)
     unused = np.zeros(B, np.int64)
-    groups = dict(tuple(tracks.groupby("trial", sort=False))) if len(tracks) else {}
+    groups = dict(tuple(used_rows(tracks).groupby("trial", sort=False))) if len(tracks) else {}
     for i, j in enumerate(trials):
         df = groups.get(int(j), tracks.iloc[:0])
         a = ssl.assign_slots(df, N, K)

@@ -32,7 +32,7 @@ from ..filters.registry import thesis_role
 from ..rundir import store
 from ..rundir.percentiles import percentile_table, reason_kind, wilson_interval
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
-from . import faults_report
+from . import faults_report, tracks_report
 from . import figures as figs
 from .html import cells as _cells, esc, figure_html, fmt_num, fmt_value, html_table, page
 from . import sensitivity_report
@@ -507,6 +507,7 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
                             "mean IEKF iterations per step", "trials with unconverged IEKF steps"],
                            diagnostics_rows(data)))  # fmt: skip
     body += faults_report.section(data)
+    body += tracks_report.section(data)
 
     body.append("<h2>Compute time per trial</h2>")
     if data.timing is not None and not data.timing.empty:

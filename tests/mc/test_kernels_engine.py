@@ -63,6 +63,7 @@ def test_auto_backend_picks_threads_for_compiled_and_inline_for_one_chunk():
     assert engine.local_backend(opts, 4) == "threading"
     assert engine.local_backend(opts, 1) == "inline"
     assert engine.local_backend(engine.RunOptions(jobs=2, backend="auto", kernels="numpy"), 4) == "loky"
+    assert engine.local_backend(opts, 4, images=True) == "loky"  # the tracker holds the GIL
     assert engine.local_backend(engine.RunOptions(jobs=1, backend="loky"), 4) == "inline"
 
 

@@ -114,3 +114,15 @@ def test_a_bad_tracks_file_is_one_line_and_exit_2(images_run, tmp_path):
     p.write_text(yaml.safe_dump(d))
     one_error_line(spmc("run", p, "--trials", 2, "--out", tmp_path / "out", "--quiet"), "bad.csv", "col_l")
     assert not (tmp_path / "out" / "trials.parquet").exists()
+
+
+def test_the_report_shows_the_tracker_audit(images_run):
+    """`spmc report` of an images run: the tracker section's counts are those of its tracks.parquet."""
+    from stereopose_mc.outputs.report import build_run_report
+
+    tmp, _, _ = images_run
+    html = build_run_report(tmp / "run").read_text()
+    tracks = pd.read_parquet(tmp / "run" / "tracks.parquet")
+    n = tracks.groupby(["trial", "track_id"]).ngroups
+    assert "Tracker and its truth audit" in html
+    assert f"<td class=\"l\">tracks</td><td>{n}</td>" in html.replace("\n", "")
