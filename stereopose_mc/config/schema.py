@@ -634,9 +634,9 @@ class Scenario(_Model):
                 raise ValueError(f"initial_estimate.method measurements needs the image velocities of the first frame, "
                                  f"which tracks do not have (measurements.source {m.source}): the slots are "
                                  f"initialized from their first stereo frame anyway")  # fmt: skip
-            if self.dispersions is not None and self.dispersions.specs:
-                raise ValueError(f"dispersions with measurements.source {m.source} are not supported yet: the "
-                                 "campaign renders and tracks one shared truth")  # fmt: skip
+            if m.source == "tracks" and self.dispersions is not None and self.dispersions.specs:
+                raise ValueError("dispersions with measurements.source tracks: the tracks are given, they cannot "
+                                 "follow a dispersed truth (use source images, which renders each trial's own)")
         if self.target.shape is None and (m.occlusion or m.illumination is not None):
             key = "occlusion" if m.occlusion else "illumination"
             raise ValueError(f"measurements.{key} needs target.shape")

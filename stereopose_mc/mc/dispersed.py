@@ -78,6 +78,12 @@ def _put(dst: FilterRun, src: FilterRun, rows: np.ndarray) -> None:
     dst.dof[rows] = src.nis_dof if src.dof is None else src.dof
     if src.gated is not None:
         dst.gated[rows] = src.gated
+    if src.nees_dof_steps is not None:  # feature slots: each NEES's dof per trial and step
+        if dst.nees_dof_steps is None:
+            dst.nees_dof_steps = {k: np.zeros((dst.nees.shape[0], v.shape[1]), v.dtype)
+                                  for k, v in src.nees_dof_steps.items()}  # fmt: skip
+        for k, v in src.nees_dof_steps.items():
+            dst.nees_dof_steps[k][rows] = v
 
 
 def _same_visibility(visible: np.ndarray) -> list[np.ndarray]:
@@ -107,9 +113,15 @@ def _measurement_start(fsetup: Setup, fs: FilterSetup, y0: np.ndarray, visible0:
 
 
 def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
-              kernels: str = "numpy", tick=None) -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
+              kernels: str = "numpy", tick=None, tracks_out: list | None = None,
+              ) -> tuple[ChunkResult, sd.TrialDispersions]:  # fmt: skip
     """Every filter of ``scn`` on the dispersed trials ``trials`` (a ``ChunkResult`` in trial order;
-    ``tick``: ``trial.run_filter``'s progress counter)."""
+    ``tick``: ``trial.run_filter``'s progress counter).
+
+    ``measurements.source: images``: each valid trial's frames are rendered from its own dispersed scenario and
+    truth, tracked, and its tracks fill the filters' feature slots (``mc/tracked.py``); their tables are appended to
+    ``tracks_out``.
+    """
     t0 = time.perf_counter()
     trials = np.asarray(trials, dtype=np.int64)
     B, K1 = trials.size, setup.steps + 1
@@ -152,9 +164,23 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
             x0_m, P0_m = x0_hat[m], None
             if fsetup.initial_estimate == "measurements":  # the filters' own start from the first frame
                 x0_m, P0_m = _measurement_start(fsetup, filters[0], y_m[:, 0], vis_m[:, 0], x0_m)
+            slot = None
+            if scn.measurements.source == "images":  # the trials' own renders and tracks in the feature slots
+                from . import tracked  # OpenCV, pandas: only image campaigns import them
+
+                slot = tracked.dispersed_tracks([disp.truth[rows[g]] for g in m], [tsetups[g] for g in m], tg,
+                                                trials[rows[m]], scn.seed, tick)  # fmt: skip
+                if tracks_out is not None:
+                    tracks_out.append(slot)
             for fs in filters:
                 t1 = time.perf_counter()
-                r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], vis_m, fs, bounds, kept_m, P0_m, kernels, tick)
+                if slot is not None:
+                    d = tracked.slot_data(slot, trials[rows[m]], fsetup, disp.filter_model[rows[m[0]]], fs)
+                    r = run_filter(x0_m, fsetup, tg, d.y, noisy.alpha[m], d.visible, fs, bounds, None, None, kernels,
+                                   None, slots=d.schedule, extra_var=d.extra_var)  # fmt: skip
+                else:
+                    r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], vis_m, fs, bounds, kept_m, P0_m, kernels,
+                                   tick)  # fmt: skip
                 _put(runs[fs.label], r, rows[m])
                 runs[fs.label].runtime_s = (runs[fs.label].runtime_s if runs[fs.label].runtime_s is not None
                                             else np.zeros(B))  # fmt: skip

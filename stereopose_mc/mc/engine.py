@@ -152,7 +152,14 @@ def compute_chunk(scenario_json: str, trials: np.ndarray, timeseries: str, kerne
         with _PREPARE_LOCK:
             scn, setup, truth, exact, filters, bounds = _prepared(scenario_json)
         tracks = None
-        if scn.measurements.source != "model":  # tracks fill the filters' feature slots
+        if scn.measurements.source == "images" and dispersed.has_dispersions(scn):  # per-trial renders and tracks
+            parts: list = []
+            res, disp = dispersed.run_chunk(scn, np.asarray(trials), setup, bounds, kernels, tick, parts)
+            if parts:
+                import pandas as pd
+
+                tracks = pd.concat(parts, ignore_index=True).sort_values(["trial", "step", "track_id"], kind="stable")
+        elif scn.measurements.source != "model":  # tracks fill the filters' feature slots
             from . import tracked  # pandas, OpenCV: only runs measured by tracks import them
 
             images = scn.measurements.source == "images"  # progress: the tracking's, not the filters'

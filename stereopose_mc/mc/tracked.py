@@ -102,6 +102,21 @@ def tracks_for(scn: Scenario, setup: Setup, truth: Truth, trials: NDArray[np.int
     return df[df["trial"].isin(np.asarray(trials))].reset_index(drop=True)
 
 
+def dispersed_tracks(scenarios: list[Scenario], setups: list[Setup], truth: Truth, trials: NDArray[np.int64],
+                     seed: int, tick: Callable[[int], None] | None = None) -> pd.DataFrame:  # fmt: skip
+    """The tracks of dispersed trials: each rendered from its own scenario (shape, camera, Sun) along its own truth
+    (``truth.x (B, K+1, n)``, rows aligned with ``trials``), with its own noise stream; ``tick`` as ``tracks_for``."""
+    from ..sim import images  # OpenCV and the renderer: imported only by image campaigns
+
+    out = []
+    for i, (s, st_, j) in enumerate(zip(scenarios, setups, trials)):
+        one = dataclasses.replace(truth, x=truth.x[i : i + 1])
+        out.append(images.campaign_tracks(s, st_, one, [int(j)], seed))
+        if tick is not None:
+            tick(st_.steps * len(s.filters))
+    return pd.concat(out, ignore_index=True)
+
+
 def used_rows(tracks: pd.DataFrame) -> pd.DataFrame:
     """The rows the filters use: every track's rows but its first (its detection).
 
