@@ -17,7 +17,8 @@ Radiance (relative; a white Lambertian surface facing the Sun is 1):
 ``L = albedo (max(0, n . s) lit + ambient)``, with ``s`` the unit vector toward the Sun
 (``measurements.illumination.sun_direction_lvlh``: toward the Sun, in ``L``, the sign the
 illumination test uses) and ``lit`` false when a second ray from the hit point toward the Sun
-meets the body (self-shadow). Background (no hit) is black. With ``supersample = s`` each
+meets the body (self-shadow). Background (no hit) is black, or the sunlit Earth (earth.py) when
+an ``EarthView`` is given (then every pixel's rays are tested against it). With ``supersample = s`` each
 pixel averages ``s x s`` rays on a regular sub-grid (anti-aliased edges); the ground truth is
 the ray through the pixel centre.
 """
@@ -33,6 +34,7 @@ from ...config.sensor import PixelCamera
 from ...core import quaternion as qt
 from ...core import shapes
 from ...core import state as st
+from . import earth as ea, texture
 from .scene import Scene
 
 Array = NDArray[np.float64]
@@ -159,7 +161,7 @@ def shade(scene: Scene, hits: Hits, d_T: Array, sun_T: Array, footprint_m: Array
         origin = p[idx] + eps * scene.normals[tri[idx]]
         blocked = scene.mesh.ray.intersects_any(origin, np.broadcast_to(sun_T, origin.shape))
         lit[idx[blocked]] = False
-    albedo = albedo_at(scene, p, tri, footprint_m / np.sqrt(np.maximum(np.abs(np.einsum("ij,ij->i", n, d_T)), 0.1)))
+    albedo = albedo_at(scene, p, tri, texture.slant_footprint(footprint_m, n, d_T))
     return albedo * (np.where(lit, cos_i, 0.0) + settings.ambient)
 
 
@@ -193,9 +195,22 @@ def footprint_window(scene: Scene, rig: Rig, rho: Array, D: Array, cam: str) -> 
     return slice(r0, r1), slice(c0, c1)
 
 
+def earth_window(rig: Rig, earth: ea.EarthView, cam: str) -> tuple[slice, slice]:
+    """Rows and columns of the pixels whose centre ray meets the Earth, one pixel wider (empty: no such pixel)."""
+    col, row = pixel_grid(rig.camera, 1)
+    t = ea.intersect(rig.centre(cam), directions_L(rig.camera, col[..., 0], row[..., 0]).reshape(-1, 3),
+                     earth.centre_L, earth.earth.radius).reshape(col.shape[:2])  # fmt: skip
+    r, c = np.nonzero(np.isfinite(t))
+    if not len(r):
+        return slice(0, 0), slice(0, 0)
+    H, W = rig.camera.height, rig.camera.width
+    return slice(max(r.min() - 1, 0), min(r.max() + 2, H)), slice(max(c.min() - 1, 0), min(c.max() + 2, W))
+
+
 def render_view(scene: Scene, rig: Rig, rho: Array, D: Array, sun_L: Array, cam: str,
-                settings: RenderSettings = RenderSettings()) -> View:  # fmt: skip
-    """Radiance and ground truth of one camera at the pose ``(rho, D)`` (rays cast only where the target can be)."""
+                settings: RenderSettings = RenderSettings(), earth: ea.EarthView | None = None) -> View:  # fmt: skip
+    """Radiance and ground truth of one camera at the pose ``(rho, D)`` (rays cast only where the target can be;
+    with ``earth``, the rays that miss the target and meet the Earth show it)."""
     s = settings.supersample
     H, W = rig.camera.height, rig.camera.width
     rows, cols = footprint_window(scene, rig, rho, D, cam)
@@ -214,7 +229,17 @@ def render_view(scene: Scene, rig: Rig, rho: Array, D: Array, sun_L: Array, cam:
         footprint = rng_m / (rig.camera.f_px * s)
         rad[m] = shade(scene, sub, d_T, D.T @ np.asarray(sun_L, dtype=float), footprint, settings)
     radiance = np.zeros((H, W))
-    radiance[rows, cols] = rad.reshape(h, w, S).mean(axis=-1)
+    if earth is None:
+        radiance[rows, cols] = rad.reshape(h, w, S).mean(axis=-1)
+    else:
+        miss = np.ones((H, W, S), bool)
+        miss[rows, cols] = ~hits.hit
+        cf, rf = pixel_grid(rig.camera, s)
+        full = np.zeros((H, W, S))
+        full[miss] = ea.radiance(earth, rig.centre(cam), directions_L(rig.camera, cf[miss], rf[miss]),
+                                 np.asarray(sun_L, float), 1.0 / (rig.camera.f_px * s))  # fmt: skip
+        full[rows, cols] += rad.reshape(h, w, S)
+        radiance = full.mean(axis=-1)
     if s % 2:  # the middle sub-sample is the pixel centre
         win = Hits(*(a[:, :, (S - 1) // 2] for a in (hits.point, hits.triangle, hits.surface, hits.depth,
                                                         hits.normal, hits.hit)))  # fmt: skip
@@ -235,6 +260,6 @@ class StereoFrame:
 
 
 def render_stereo(scene: Scene, rig: Rig, rho: Array, D: Array, sun_L: Array,
-                  settings: RenderSettings = RenderSettings()) -> StereoFrame:  # fmt: skip
-    """Both cameras at one pose."""
-    return StereoFrame(*(render_view(scene, rig, rho, D, sun_L, c, settings) for c in ("right", "left")))
+                  settings: RenderSettings = RenderSettings(), earth: ea.EarthView | None = None) -> StereoFrame:  # fmt: skip
+    """Both cameras at one pose (``earth``: the Earth behind the target at this step, else black)."""
+    return StereoFrame(*(render_view(scene, rig, rho, D, sun_L, c, settings, earth) for c in ("right", "left")))

@@ -11,7 +11,10 @@ Every triangle belongs to a *surface*: triangles joined across edges whose norma
 less than ``SMOOTH_DEG`` (a box face, a panel side, the whole ellipsoid). A surface has one
 material (``texture.MLI | EQUIPMENT | CELLS``, body surfaces drawn from the seed, panels are
 cells) and a random offset into its material's tile, so no two surfaces look alike.
-Texture coordinates are planar along the dominant axis of the triangle's normal.
+With a texture from an image file (``texture.file_atlas``) every surface shows that one tile,
+at offset zero (the tile's corner at the body frame's origin, repeated every ``w x h`` m).
+Texture coordinates are planar along the dominant axis ``k`` of the triangle's normal:
+``a = p[(k + 1) % 3]``, ``b = p[(k + 2) % 3]`` (a face normal to ``x``: ``a = y``, ``b = z``).
 """
 
 from __future__ import annotations
@@ -94,8 +97,9 @@ def surfaces(mesh: trimesh.Trimesh, smooth_deg: float = SMOOTH_DEG) -> NDArray[n
     return connected_components(g, directed=False)[1].astype(np.int64)
 
 
-def scene(shape: shapes.Shape, seed: int, panels: Panels | None = None) -> Scene:
-    """The textured target: the body, optional panels, surfaces, materials and textures from ``seed``."""
+def scene(shape: shapes.Shape, seed: int, panels: Panels | None = None, tile: texture.Atlas | None = None) -> Scene:
+    """The textured target: the body, optional panels, surfaces, materials and textures from ``seed``; with
+    ``tile`` (a one-material atlas, ``texture.file_atlas``) every surface shows it, at offset zero."""
     rng = np.random.default_rng(seed)
     parts = [body_mesh(shape)]
     if panels is not None:
@@ -114,5 +118,8 @@ def scene(shape: shapes.Shape, seed: int, panels: Panels | None = None) -> Scene
     body_material = rng.choice([texture.MLI, texture.EQUIPMENT], size=n_surf, p=[0.6, 0.4])
     material = np.where(on_panel, texture.CELLS, body_material)
     offset = rng.uniform(0.0, texture.TILE * texture.TEXEL_M, size=(n_surf, 2))
+    if tile is not None:
+        return Scene(shape, mesh, n_body, np.asarray(mesh.face_normals, dtype=float), label,
+                     np.zeros(n_surf, np.int64), np.zeros((n_surf, 2)), tile)  # fmt: skip
     return Scene(shape, mesh, n_body, np.asarray(mesh.face_normals, dtype=float), label, material, offset,
                  texture.atlas(rng))  # fmt: skip

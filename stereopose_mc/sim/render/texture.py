@@ -8,15 +8,18 @@ Three materials, each a periodic square tile of ``TILE`` texels (albedo in [0, 1
 - ``CELLS``: solar cells, dark cells on a bright interconnect grid with thin bus bars.
 
 A texel is ``TEXEL_M`` metres on the body (the tile repeats every ``TILE * TEXEL_M`` m).
-Sampling is trilinear over a mip-map (Williams 1983): level ``L = log2(footprint / TEXEL_M)``
-for a pixel footprint on the surface, bilinear within the levels ``floor(L)`` and
-``floor(L) + 1`` and linear between them, so a texture finer than a pixel is averaged, not
-aliased (aliasing would make the rendered texture flicker and the tracker drift).
+Or one tile read from an image file (:func:`file_atlas`: grayscale, ``w x h`` metres).
+Sampling is trilinear over a mip-map (Williams 1983): level ``L = log2(footprint / texel)``
+(``texel``: the level-0 texel's larger side in metres) for a pixel footprint on the surface,
+bilinear within the levels ``floor(L)`` and ``floor(L) + 1`` and linear between them, so a
+texture finer than a pixel is averaged, not aliased (aliasing would make the rendered texture
+flicker and the tracker drift).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -81,22 +84,33 @@ def cells_tile(rng: np.random.Generator, n: int = TILE) -> NDArray[np.float32]:
 
 @dataclass(frozen=True)
 class Atlas:
-    """Mip pyramids ``pyramids[material][level]`` of the material tiles."""
+    """Mip pyramids ``pyramids[material][level]`` of the material tiles; ``size_m[material] = (w, h)``: the
+    tile's width (along ``a``, its columns) and height (along ``b``, its rows) in metres (None: every tile is
+    ``TILE * TEXEL_M`` square)."""
 
     pyramids: tuple[tuple[NDArray[np.float32], ...], ...]
+    size_m: tuple[tuple[float, float], ...] | None = None
+
+    def texel_m(self, material: int, level: int) -> tuple[float, float]:
+        """Width and height of a texel of ``level`` in metres (the tile's size over the level's texels)."""
+        w, h = (TILE * TEXEL_M,) * 2 if self.size_m is None else self.size_m[material]
+        rows, cols = self.pyramids[material][level].shape
+        return w / cols, h / rows
 
     def sample(self, material: int, a: Array, b: Array, footprint_m: Array) -> Array:
         """Albedo at texture coordinates ``a, b`` (metres on the tile, periodic) for a pixel footprint (m)."""
-        lev = np.clip(np.log2(np.maximum(footprint_m, 1e-12) / TEXEL_M), 0.0, LEVELS - 1.0)
+        n = len(self.pyramids[material])
+        lev = np.clip(np.log2(np.maximum(footprint_m, 1e-12) / max(self.texel_m(material, 0))), 0.0, n - 1.0)
         lo = np.floor(lev).astype(int)
         w = lev - lo
         out = np.empty_like(a)
         for L in np.unique(lo):
             m = lo == L
-            s = TEXEL_M * 2.0**L
-            v0 = self._bilinear(material, L, a[m] / s, b[m] / s)
-            if L + 1 < LEVELS:
-                v1 = self._bilinear(material, L + 1, a[m] / (2 * s), b[m] / (2 * s))
+            sa, sb = self.texel_m(material, L)
+            v0 = self._bilinear(material, L, a[m] / sa, b[m] / sb)
+            if L + 1 < n:
+                sa, sb = self.texel_m(material, L + 1)
+                v1 = self._bilinear(material, L + 1, a[m] / sa, b[m] / sb)
                 out[m] = (1.0 - w[m]) * v0 + w[m] * v1
             else:
                 out[m] = v0
@@ -108,13 +122,39 @@ class Atlas:
         return map_coordinates(img, [row - 0.5, col - 0.5], order=1, mode="grid-wrap")
 
 
+def slant_footprint(footprint_m: Array, n: Array, d: Array) -> Array:
+    """A pixel's footprint (m) on a surface of unit normal ``n (m, 3)`` seen along ``d (m, 3)``: ``footprint /
+    sqrt(max(|n . d|, 0.1))`` (the geometric mean of the footprint's two sides, capped at grazing incidence)."""
+    return footprint_m / np.sqrt(np.maximum(np.abs(np.einsum("ij,ij->i", n, d)), 0.1))
+
+
+def pyramid(tile: NDArray[np.float32], levels: int = LEVELS) -> tuple[NDArray[np.float32], ...]:
+    """``tile`` and its mip levels (2 x 2 box filter per level), at most ``levels``, down to one texel."""
+    out = [tile]
+    while len(out) < levels and min(out[-1].shape) > 1:
+        out.append(cv2.resize(out[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+    return tuple(out)
+
+
 def atlas(rng: np.random.Generator) -> Atlas:
-    """The three material tiles drawn from ``rng`` and their mip pyramids (2 x 2 box filter per level)."""
-    tiles = (mli_tile(rng), equipment_tile(rng), cells_tile(rng))
-    pyr = []
-    for t in tiles:
-        levels = [t]
-        for _ in range(LEVELS - 1):
-            levels.append(cv2.resize(levels[-1], None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
-        pyr.append(tuple(levels))
-    return Atlas(tuple(pyr))
+    """The three material tiles drawn from ``rng`` and their mip pyramids."""
+    return Atlas(tuple(pyramid(t) for t in (mli_tile(rng), equipment_tile(rng), cells_tile(rng))))
+
+
+class TextureFileError(ValueError):
+    """An image file that OpenCV cannot read."""
+
+
+def read_albedo(path: str | Path) -> NDArray[np.float32]:
+    """The grayscale albedo ``(rows, cols)`` in [0, 1] of an image file (8 or 16 bits; colour is averaged by
+    OpenCV's luma)."""
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+    if img is None or img.size == 0:
+        raise TextureFileError(f"{path}: not an image OpenCV can read (PNG, JPEG, TIFF, BMP)")
+    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
+    return np.clip(img.astype(np.float32) / np.float32(top), 0.0, 1.0)
+
+
+def file_atlas(path: str | Path, size_m: tuple[float, float]) -> Atlas:
+    """One material: the image file's albedo as a tile ``size_m = (w, h)`` metres (image columns along ``w``)."""
+    return Atlas((pyramid(read_albedo(path)),), ((float(size_m[0]), float(size_m[1])),))
