@@ -508,6 +508,11 @@ def problems_of(text: str, file: str, overrides: dict[str, Any] | None = None) -
     if scenario is not None and scenario.measurements.tracks is not None:
         scenario, found = _tracks_files(scenario, file)
         problems += [Problem(file, where.line(loc), path_str(loc), msg) for loc, msg in found]
+    if scenario is not None and scenario.measurements.images.texture is not None:
+        scenario, msg = _texture_file(scenario, file)
+        if msg:
+            loc = ("measurements", "images", "texture", "file")
+            problems.append(Problem(file, where.line(loc), path_str(loc), msg))
     problems.sort(key=lambda p: p.line or 0)
     return problems, (scenario if not problems else None)
 
@@ -540,6 +545,24 @@ def _tracks_files(scenario: Scenario, file: str) -> tuple[Scenario, list[tuple[L
         update[key] = str(p)
     m = scenario.measurements.model_copy(update={"tracks": t.model_copy(update=update)})
     return scenario.model_copy(update={"measurements": m}), out
+
+
+def _texture_file(scenario: Scenario, file: str) -> tuple[Scenario, str]:
+    """The scenario with ``measurements.images.texture.file`` made absolute, and the problem ("" if none): a
+    missing file or one OpenCV cannot read as an image."""
+    from .texturefile import TextureFileError, read_albedo
+
+    images = scenario.measurements.images
+    p = _resolved(images.texture.file, file)
+    if not p.is_file():
+        return scenario, f"{p}: {'is a directory, not a file' if p.is_dir() else 'file not found'}"
+    try:
+        read_albedo(p)
+    except TextureFileError as exc:
+        return scenario, str(exc)
+    texture = images.texture.model_copy(update={"file": str(p)})
+    m = scenario.measurements.model_copy(update={"images": images.model_copy(update={"texture": texture})})
+    return scenario.model_copy(update={"measurements": m}), ""
 
 
 # ray directions of the inside test: two generic directions and their opposites (a point on the surface has one

@@ -324,6 +324,18 @@ class TrackerConfig(_Model):
         return self
 
 
+class TextureFileConfig(_Model):
+    """A texture read from an image file (sim/render/texture.py ``file_atlas``, docs/images.md)."""
+
+    file: Annotated[str, Field(min_length=1)] = Field(
+        description="grayscale albedo image (PNG, JPEG, ...; colour is converted to luma, 0..255 -> 0..1); a "
+        "relative path is taken from the scenario file's folder")
+    size_m: tuple[Pos, Pos] = Field(description="[w, h]: the tile's width (image columns) and height (rows) in m")
+
+
+BACKGROUNDS = ("black", "earth")
+
+
 class ImagesConfig(_Model):
     """Rendered stereo images and the feature tracker (``measurements.source: images``, docs/images.md)."""
 
@@ -334,6 +346,11 @@ class ImagesConfig(_Model):
         description="solar-panel wings beside the body: false or null (none), true (the default wings) or `{span_m, "
         "width_m, thickness_m, gap_m, axis, normal_axis}` (docs/images.md)",
     )
+    texture: TextureFileConfig | None = Field(
+        default=None, description="null: the seeded procedural texture; `{file, size_m: [w, h]}`: an image file's "
+        "albedo, a w x h m tile repeated over every surface (docs/images.md)")
+    background: Literal[BACKGROUNDS] = Field(
+        default="black", description="black, or earth: the sunlit Earth sphere behind the target where it is in view")
     supersample: Annotated[int, Field(ge=1, le=8)] = Field(default=1, description="rays per pixel along each axis")
     ambient: Annotated[float, Field(ge=0, le=1)] = Field(
         default=0.0, description="diffuse light from everywhere, a fraction of the Sun's")

@@ -7,8 +7,10 @@
    covers over the sequence (the union of its per-step footprints, ``MARGIN_PX`` wider) is
    kept as float32 stacks in ``<cache>/<key>.npz`` (plain arrays, no pickle), where ``key``
    is the SHA-256 of the true poses, the camera, the baseline, the textured scene (mesh,
-   surfaces, materials, texture seed), the Sun, the render settings, the versions of the
-   rendering code and of numpy / trimesh / embreex. A second call with the same key loads it.
+   surfaces, materials, texture seed and texels), the Sun, the background (with the Earth: its
+   map and per-step position), the render settings, the versions of the rendering code and of
+   numpy / trimesh / embreex. A second call with the same key loads it. With the Earth in view
+   the kept region also covers the pixels that see it (up to the whole image).
    A per-trial (dispersed) truth ``x (B, K+1, n)`` is rendered per trial, in memory.
 2. **Expose** each trial's own sensor noise on that radiance (sim/render/sensor.py), from
    ``SeedSequence(seed, spawn_key=(j, IMAGES_STREAM))``, a child stream no other draw uses
@@ -37,6 +39,8 @@ from scipy.stats import norm
 
 from ..config.resolve import Setup
 from ..config.schema import Scenario
+from ..core.orbit import Orbit
+from .render import earth as ea
 from .render import renderer as rr
 from .render import sensor as ss
 from .render.scene import Panels
@@ -49,7 +53,7 @@ IMAGES_STREAM = 0x696D67  # "img": second entry of the spawn key of a trial's im
 CACHE_FORMAT = 1
 MARGIN_PX = 16  # kept around the target's footprint (zero radiance; room for a defocus blur of ~4 px)
 SPARSE_BACKGROUND = 1e-3  # draw the background sparsely while fewer pixels than this fraction are non-zero
-RENDER_SOURCES = ("renderer.py", "scene.py", "texture.py", "setup.py")  # in sim/render/: a change changes every key
+RENDER_SOURCES = ("renderer.py", "scene.py", "texture.py", "setup.py", "earth.py")  # in sim/render/: a change changes every key
 
 Progress = Callable[[str, int, int], None]  # (stage "render" | "track", done, total)
 
@@ -92,20 +96,33 @@ class Radiance:
     shape: tuple[int, int]
 
 
-def _window(img: ImageSetup, poses, cam: str) -> tuple[int, int, int, int]:
+def earth_views(img: ImageSetup, orbit: Orbit, nu) -> list[ea.EarthView] | None:
+    """The Earth at each step (true anomalies ``nu (K+1,)`` of the leader on ``orbit``: ``r = p / (1 + e cos
+    nu)``), or None with a black background."""
+    if img.earth is None:
+        return None
+    nu = np.asarray(nu, dtype=float)
+    r = orbit.p / (1.0 + orbit.e * np.cos(nu))
+    return [ea.view(img.earth, float(rk), float(nk)) for rk, nk in zip(r, nu)]
+
+
+def _window(img: ImageSetup, poses, cam: str, earth=None) -> tuple[int, int, int, int]:
     wins = [rr.footprint_window(img.scene, img.rig, rho, D, cam) for rho, D in poses]
+    if earth is not None:
+        wins += [w for w in (rr.earth_window(img.rig, e, cam) for e in earth) if w[0].stop > w[0].start]
     H, W = img.rig.camera.height, img.rig.camera.width
     return (max(0, min(w[0].start for w in wins) - MARGIN_PX), min(H, max(w[0].stop for w in wins) + MARGIN_PX),
             max(0, min(w[1].start for w in wins) - MARGIN_PX), min(W, max(w[1].stop for w in wins) + MARGIN_PX))  # fmt: skip
 
 
 def render_radiance(img: ImageSetup, poses, settings: rr.RenderSettings = rr.RenderSettings(),
-                    progress: Progress | None = None) -> Radiance:  # fmt: skip
-    """Render both cameras at every pose; the radiance inside the target's window over the sequence."""
-    win = np.array([_window(img, poses, c) for c in ("right", "left")], dtype=np.int64)
+                    progress: Progress | None = None, earth: list[ea.EarthView] | None = None) -> Radiance:  # fmt: skip
+    """Render both cameras at every pose; the radiance inside the target's window over the sequence (and the
+    Earth's, with ``earth``: :func:`earth_views`, one per pose)."""
+    win = np.array([_window(img, poses, c, earth) for c in ("right", "left")], dtype=np.int64)
     stacks = [np.zeros((len(poses), r1 - r0, c1 - c0), np.float32) for r0, r1, c0, c1 in win]
     for k, (rho, D) in enumerate(poses):
-        f = rr.render_stereo(img.scene, img.rig, rho, D, img.sun_L, settings)
+        f = rr.render_stereo(img.scene, img.rig, rho, D, img.sun_L, settings, None if earth is None else earth[k])
         for stack, view, (r0, r1, c0, c1) in zip(stacks, (f.right, f.left), win):
             stack[k] = view.radiance[r0:r1, c0:c1]
         if progress is not None:
@@ -128,7 +145,8 @@ def _version(dist: str) -> str:
         return "-"
 
 
-def render_inputs(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettings) -> dict:
+def render_inputs(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettings,
+                  earth: list[ea.EarthView] | None = None) -> dict:  # fmt: skip
     """Everything the cached radiance depends on, JSON-ready (floats exact, arrays by digest)."""
     sc, cam = img.scene, img.rig.camera
     code = Path(rr.__file__).parent
@@ -142,14 +160,18 @@ def render_inputs(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettin
         "baseline": _num(img.rig.baseline),
         "scene": _digest(sc.mesh.vertices, sc.mesh.faces, sc.normals, sc.surface, sc.material, sc.offset),
         "texture_seed": int(np.random.SeedSequence(s.seed, spawn_key=TEXTURE_KEY).generate_state(1)[0]),
+        "texture": _digest(*(p[0] for p in sc.atlas.pyramids), np.asarray(sc.atlas.size_m or (), float)),
         "sun": [_num(v) for v in img.sun_L],
+        "background": "black" if earth is None else _digest(
+            img.earth.atlas.pyramids[0][0], np.array([img.earth.radius]), *(a for e in earth for a in (e.centre_L, e.to_map))),
         "render": {k: _num(v) if isinstance(v, float) else v for k, v in asdict(settings).items()},
         "margin": MARGIN_PX,
     }
 
 
-def render_key(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettings) -> str:
-    canon = json.dumps(render_inputs(s, img, poses, settings), sort_keys=True, separators=(",", ":"))
+def render_key(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettings,
+               earth: list[ea.EarthView] | None = None) -> str:  # fmt: skip
+    canon = json.dumps(render_inputs(s, img, poses, settings, earth), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canon.encode()).hexdigest()
 
 
@@ -179,17 +201,18 @@ def store_radiance(path: Path, key: str, r: Radiance) -> None:
 
 
 def cached_radiance(s: Scenario, img: ImageSetup, poses, settings: rr.RenderSettings, cache_dir: Path | None,
-                    progress: Progress | None = None) -> tuple[Radiance, bool]:  # fmt: skip
+                    progress: Progress | None = None, earth: list[ea.EarthView] | None = None,
+                    ) -> tuple[Radiance, bool]:  # fmt: skip
     """The radiance of ``poses``: from ``cache_dir/<key>.npz`` when it is there (True), else rendered and stored
     (False). ``cache_dir`` None: rendered, not stored."""
     if cache_dir is None:
-        return render_radiance(img, poses, settings, progress), False
-    key = render_key(s, img, poses, settings)
+        return render_radiance(img, poses, settings, progress, earth), False
+    key = render_key(s, img, poses, settings, earth)
     path = Path(cache_dir) / f"{key}.npz"
     r = load_radiance(path, key)
     if r is not None:
         return r, True
-    r = render_radiance(img, poses, settings, progress)
+    r = render_radiance(img, poses, settings, progress, earth)
     store_radiance(path, key, r)
     return r, False
 
@@ -280,13 +303,14 @@ def campaign_tracks(scenario: Scenario, setup: Setup, truth: Truth, trials, seed
     t = np.asarray(truth.t)
     t0 = float(t[0] if t.ndim == 1 else t[0, 0])
     out = []
+    nu = np.asarray(truth.nu)
     if shared:
         poses = [rr.pose_of(xk) for xk in x]
-        r, _ = cached_radiance(scenario, img, poses, cfg.render, where, progress)
+        r, _ = cached_radiance(scenario, img, poses, cfg.render, where, progress, earth_views(img, setup.orbit, nu))
     for i, j in enumerate(trials):
         if not shared:
             poses = [rr.pose_of(xk) for xk in x[i]]
-            r = render_radiance(img, poses, cfg.render)
+            r = render_radiance(img, poses, cfg.render, earth=earth_views(img, setup.orbit, nu[i] if nu.ndim == 2 else nu))
         out.append(trial_tracks(r, img, poses, cfg, setup.dt, seed, j, t0))
         if progress is not None:
             progress("track", i + 1, len(trials))

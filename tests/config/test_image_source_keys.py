@@ -114,3 +114,37 @@ def test_tracks_files_are_taken_from_the_scenario_folder(tmp_path):
     path.write_text(yaml.safe_dump(d))
     with pytest.raises(ScenarioError, match=r"t\.txt: expected a \.parquet or \.csv file"):
         load_scenario(path)
+
+
+def test_texture_file_is_resolved_from_the_scenario_folder_and_checked(tmp_path):
+    import cv2
+    import numpy as np
+
+    d = data()
+    (tmp_path / "tex").mkdir()
+    cv2.imwrite(str(tmp_path / "tex" / "mli.png"), np.full((8, 16), 128, np.uint8))
+    d["measurements"]["images"]["texture"] = {"file": "tex/mli.png", "size_m": [0.5, 0.25]}
+    d["measurements"]["images"]["background"] = "earth"
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(d))
+    s = load_scenario(path)
+    assert s.measurements.images.texture.file == str(tmp_path / "tex" / "mli.png")
+    assert s.measurements.images.background == "earth"
+    for texture, fragment in [({"file": "nope.png", "size_m": [1, 1]}, f"{tmp_path / 'nope.png'}: file not found"),
+                              ({"file": "tex", "size_m": [1, 1]}, "is a directory, not a file"),
+                              ({"file": "s.yaml", "size_m": [1, 1]}, "not an image OpenCV can read")]:  # fmt: skip
+        d["measurements"]["images"]["texture"] = texture
+        path.write_text(yaml.safe_dump(d))
+        with pytest.raises(ScenarioError) as exc:
+            load_scenario(path)
+        ps = exc.value.problems
+        assert len(ps) == 1 and ps[0].path == "measurements.images.texture.file" and fragment in ps[0].message
+        assert ps[0].line is not None and "\n" not in str(ps[0])
+    d["measurements"]["images"]["texture"] = {"file": "tex/mli.png", "size_m": [1.0, -1.0]}
+    assert one_problem(d).startswith("measurements.images.texture.size_m.1:")
+    d["measurements"]["images"]["texture"] = {"file": "tex/mli.png", "size_m": [1.0, 1.0], "tile": 2}
+    assert one_problem(d).startswith("measurements.images.texture.tile:")
+    d["measurements"]["images"]["texture"] = None
+    d["measurements"]["images"]["background"] = "stars"
+    msg = one_problem(d)
+    assert msg.startswith("measurements.images.background:") and "earth" in msg

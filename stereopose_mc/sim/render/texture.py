@@ -26,6 +26,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
+from ...config.texturefile import read_albedo
+
 Array = NDArray[np.float64]
 
 MLI, EQUIPMENT, CELLS = 0, 1, 2
@@ -139,20 +141,6 @@ def pyramid(tile: NDArray[np.float32], levels: int = LEVELS) -> tuple[NDArray[np
 def atlas(rng: np.random.Generator) -> Atlas:
     """The three material tiles drawn from ``rng`` and their mip pyramids."""
     return Atlas(tuple(pyramid(t) for t in (mli_tile(rng), equipment_tile(rng), cells_tile(rng))))
-
-
-class TextureFileError(ValueError):
-    """An image file that OpenCV cannot read."""
-
-
-def read_albedo(path: str | Path) -> NDArray[np.float32]:
-    """The grayscale albedo ``(rows, cols)`` in [0, 1] of an image file (8 or 16 bits; colour is averaged by
-    OpenCV's luma)."""
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
-    if img is None or img.size == 0:
-        raise TextureFileError(f"{path}: not an image OpenCV can read (PNG, JPEG, TIFF, BMP)")
-    top = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else 1.0
-    return np.clip(img.astype(np.float32) / np.float32(top), 0.0, 1.0)
 
 
 def file_atlas(path: str | Path, size_m: tuple[float, float]) -> Atlas:
