@@ -357,7 +357,7 @@ class ImagesConfig(_Model):
     cache: bool = Field(
         default=True,
         description="keep the rendered radiance of a shared truth on disk (keyed by the poses, camera, target, "
-        "panels, Sun and render settings) and reuse it",
+        "panels, texture, Sun, background and render settings) and reuse it",
     )
     tracker: TrackerConfig = TrackerConfig()
 

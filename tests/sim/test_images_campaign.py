@@ -21,10 +21,14 @@ from stereopose_mc.sim.truth import simulate_truth
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def small_scenario(**images_keys):
+def small_scenario(fov_deg: float | None = None, sun=None, **images_keys):
     """configs/caseB-images.yaml at 256 px, 15 m, 10 steps, a faster spin (a few tracks come and go)."""
     d = yaml.safe_load((ROOT / "configs" / "caseB-images.yaml").read_text())
     d["camera"]["resolution_px"] = [256, 256]
+    if fov_deg is not None:
+        d["camera"]["fov_deg"] = fov_deg
+    if sun is not None:
+        d["measurements"]["illumination"] = {"sun_direction_lvlh": sun}
     d["time"] = {"dt_s": 1.0, "duration_s": 10.0, "error_window_start_s": 1.0}
     d["truth_initial_state"]["rho_m"] = [2.5, 15.0, 2.5]
     d["truth_initial_state"]["omega_degps"] = [-1.0, -1.0, 0.34]
@@ -63,6 +67,37 @@ def test_cache_hit_gives_the_rendered_radiance(small, tmp_path):
     assert images.render_key(s, other, poses, cfg.render) != images.render_key(s, img, poses, cfg.render)
     _, hit3 = images.cached_radiance(s, other, poses[:3], cfg.render, tmp_path)
     assert not hit3
+
+
+def test_earth_background_is_rendered_kept_and_keyed(small):
+    """A 70 deg camera 433 km above the Earth at perigee: the limb is 20.6 deg off the optical axis, in view."""
+    from stereopose_mc.core.orbit import leader_kinematics
+
+    _, setup, truth = small
+    s = small_scenario(fov_deg=70.0, sun=[0.6, -0.6, 0.5], background="earth")
+    cfg = images.image_config(s)
+    img = images.image_setup(s, cfg.panels)
+    assert img.earth is not None and images.image_setup(small[0], cfg.panels).earth is None
+    poses = [rr.pose_of(x) for x in truth.x]
+    ev = images.earth_views(img, setup.orbit, truth.nu)
+    r_leader = leader_kinematics(setup.orbit, truth.t).r
+    assert np.allclose([e.centre_L for e in ev], np.c_[-r_leader, np.zeros((len(ev), 2))], rtol=1e-12, atol=0)
+    black = img.__class__(img.scene, img.rig, img.sun_L)
+    r_e = images.render_radiance(img, poses, cfg.render, earth=ev)
+    r_b = images.render_radiance(black, poses, cfg.render)
+    (r0, r1, c0, c1), (b0, b1, d0, d1) = r_e.window[0], r_b.window[0]
+    assert r0 <= b0 and r1 >= b1 and c0 == 0 and c1 >= d1  # the Earth is on the -x (left) side
+    f = rr.render_stereo(img.scene, img.rig, *poses[5], img.sun_L, cfg.render, ev[5])
+    assert np.array_equal(r_e.right[5], f.right.radiance[r0:r1, c0:c1].astype(np.float32))
+    outside = f.right.radiance.copy()
+    outside[r0:r1, c0:c1] = 0.0
+    assert not outside.any()
+    off_target = r_e.right[5][:, : d0 - c0]  # columns left of the target's window: the Earth alone
+    assert (off_target > 0.01).mean() > 0.3 and off_target.max() < 0.61
+    keys = {images.render_key(s, img, poses, cfg.render, e) for e in (None, ev, ev[::-1])}
+    assert len(keys) == 3
+    tracks = images.campaign_tracks(s, setup, truth, [0], s.seed, cache_dir=None)
+    assert len(tracks) > 0 and tracks.loc[tracks["clean"], "err_r_px"].median() < 0.3
 
 
 def test_a_trial_gets_the_same_tracks_alone_or_with_others(small, tmp_path):
