@@ -142,12 +142,12 @@ def manage(x: Array, P: Array, chart: str, born: NDArray[np.bool_], freed: NDArr
 
     ``born (B, N)``: a new track enters the slot, measured by ``y (B, N, >=4)`` (its first stereo image
     coordinates, noise variances ``image_var (4,)``); ``freed (B, N)``: the slot's track ended (and none is born).
-    Returns new arrays; trials with no event are copied unchanged (bit for bit).
+    Returns new arrays (``x, P`` themselves at a step without an event); trials with no event keep their bits.
     """
-    x, P = x.copy(), P.copy()
     rows = np.flatnonzero(born.any(axis=1) | freed.any(axis=1))
     if rows.size == 0:
         return x, P
+    x, P = x.copy(), P.copy()
     xs = x[rows]
     Pa = _attitude(xs, P[rows], chart)
     N = born.shape[1]

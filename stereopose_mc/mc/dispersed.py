@@ -172,12 +172,12 @@ def run_chunk(scn: Scenario, trials: np.ndarray, setup: Setup, bounds: Bounds,
                                                 trials[rows[m]], scn.seed, tick)  # fmt: skip
                 if tracks_out is not None:
                     tracks_out.append(slot)
+                slot = tracked.slot_data(slot, trials[rows[m]], fsetup, disp.filter_model[rows[m[0]]])
             for fs in filters:
                 t1 = time.perf_counter()
                 if slot is not None:
-                    d = tracked.slot_data(slot, trials[rows[m]], fsetup, disp.filter_model[rows[m[0]]], fs)
-                    r = run_filter(x0_m, fsetup, tg, d.y, noisy.alpha[m], d.visible, fs, bounds, None, None, kernels,
-                                   None, slots=d.schedule, extra_var=d.extra_var)  # fmt: skip
+                    r = run_filter(x0_m, fsetup, tg, slot.y, noisy.alpha[m], slot.visible, fs, bounds, None, None,
+                                   kernels, None, slots=slot.schedule, extra_var=slot.extra_var(fs))  # fmt: skip
                 else:
                     r = run_filter(x0_m, fsetup, tg, y_m, noisy.alpha[m], vis_m, fs, bounds, kept_m, P0_m, kernels,
                                    tick)  # fmt: skip

@@ -136,14 +136,22 @@ class SlotData:
     y: Array  # (B, K+1, N, 8) normalized image units; 0 where not measured
     visible: NDArray[np.bool_]  # (B, K+1, N): measured and not born at the step (births initialize, not update)
     schedule: fsl.Schedule
-    extra_var: Array | None  # (B, K+1, N, 8): the rows' own variance above the filter's R (sigma columns), or None
+    sigma: Array  # (B, K+1, N, 2): the rows' own [position, velocity] sigma, normalized (NaN: not given)
     unused: NDArray[np.int64]  # (B,) tracks that found no free slot
 
+    def extra_var(self, fs: FilterSetup) -> Array | None:
+        """``(B, K+1, N, 8)``: how much the rows' own variance (``sigma_px``, ``sigma_pxps``) exceeds the filter's
+        R, or None when no row gives one."""
+        if not np.isfinite(self.sigma).any():
+            return None
+        base = np.array([fs.sigma_image] * 4 + [fs.sigma_flow] * 4)
+        s = np.repeat(self.sigma, 4, axis=-1)  # [position x4, velocity x4]
+        return np.where(np.isfinite(s), np.maximum(s * s - base * base, 0.0), 0.0)
 
-def slot_data(tracks: pd.DataFrame, trials: NDArray[np.int64], setup: Setup, scn: Scenario,
-              fs: FilterSetup | None = None) -> SlotData:  # fmt: skip
-    """``SlotData`` of ``trials`` from a track table with a ``trial`` column (``fs``: the filter whose R the
-    rows' ``sigma_px`` / ``sigma_pxps`` raise, when the table has them)."""
+
+def slot_data(tracks: pd.DataFrame, trials: NDArray[np.int64], setup: Setup, scn: Scenario) -> SlotData:
+    """``SlotData`` of ``trials`` from a track table with a ``trial`` column (``scn``: whose camera converts the
+    pixels)."""
     cam = pixel_camera_of(scn)
     K, N = setup.steps, setup.n_points
     B = len(trials)
@@ -160,19 +168,14 @@ def slot_data(tracks: pd.DataFrame, trials: NDArray[np.int64], setup: Setup, scn
         a = ssl.assign_slots(df, N, K)
         m = ssl.slot_measurements(df, a, cam)
         occ[i] = a.track != ssl.FREE
-        # a birth needs the track's stereo position (velocities are NaN at detection)
+        # a birth needs the track's stereo position
         born[i] = m.born & np.isfinite(m.y[..., :4]).all(-1)
         vis[i] = m.measured & ~born[i]
         y[i] = np.where(np.isfinite(m.y), m.y, 0.0)
         body[i] = m.body
         sig[i] = m.sigma
         unused[i] = a.unused.size
-    extra = None
-    if fs is not None and np.isfinite(sig).any():
-        base = np.array([fs.sigma_image] * 4 + [fs.sigma_flow] * 4)
-        s = np.concatenate([np.repeat(sig[..., :1], 4, -1), np.repeat(sig[..., 1:], 4, -1)], axis=-1)
-        extra = np.where(np.isfinite(s), np.maximum(s * s - base * base, 0.0), 0.0)
-    return SlotData(y, vis, fsl.Schedule(occ, born, body), extra, unused)
+    return SlotData(y, vis, fsl.Schedule(occ, born, body), sig, unused)
 
 
 def run_chunk(scn: Scenario, trials: NDArray[np.int64], setup: Setup, truth: Truth, exact: meas.Measurements,
@@ -184,12 +187,12 @@ def run_chunk(scn: Scenario, trials: NDArray[np.int64], setup: Setup, truth: Tru
     draws = meas.draw_trials(scn.seed, trials, setup.x0.size, setup.steps, setup.n_points)
     alpha = meas.noisy(setup, exact, draws).alpha  # the pseudo-measurement's input, as with the point model
     x0_hat = meas.initial_estimates(setup, draws)  # its points: the free slots' (a birth replaces them)
+    d = slot_data(tracks, trials, setup, scn)
     runs = []
     for fs in filters:
-        d = slot_data(tracks, trials, setup, scn, fs)
         t1 = time.perf_counter()
         r = run_filter(x0_hat, setup, truth, d.y, alpha, d.visible, fs, bounds, None, None, kernels, tick,
-                       slots=d.schedule, extra_var=d.extra_var)  # fmt: skip
+                       slots=d.schedule, extra_var=d.extra_var(fs))  # fmt: skip
         r.runtime_s = np.full(len(trials), (time.perf_counter() - t1) / len(trials))
         runs.append(r)
     return ChunkResult(trials, runs, time.perf_counter() - t0, None)
