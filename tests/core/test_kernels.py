@@ -381,10 +381,10 @@ def _dense_whitened(cols, Hval, rws, Laug):
 
 @pytest.mark.parametrize("N,virtual,masked", [(7, True, ()), (7, False, ()), (20, True, (3,)), (40, True, (0, 39)),
                                               (40, False, (5,))])  # fmt: skip
-def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
-    """``_whiten_staircase`` (the rows of ``Hw`` cut where ``L`` is zero, sorted, the Gram product by strips over
-    the rows that reach them, the virtual columns split off as a rank-6 term) gives the ``A = I + Hw^T Hw`` and
-    ``g = Hw^T rw`` of the dense product ``Hw = R^-1/2 H L_aug``, and ``_whiten_g`` takes it past 64 columns."""
+def test_whiten_information_equals_the_dense_product(N, virtual, masked):
+    """``_whiten_information`` (``A = I + L^T Y L`` from the arrow-shaped information ``Y = H^T R^-1 H``, ``L^T W``
+    by strips, the virtual columns as dense rows of ``L_aug``) gives the ``A = I + Hw^T Hw`` and ``g = Hw^T rw``
+    of the dense product ``Hw = R^-1/2 H L_aug``, and ``_whiten_g`` takes it past 64 columns."""
     from stereopose_mc.core.kernels import whiten as kw
 
     rng = np.random.default_rng(N + 7 * len(masked))
@@ -394,17 +394,18 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     Hw = _dense_whitened(cols, Hval, rws, Laug)
     rw_ref = rws * (y - hx)
     A_ref, g_ref = np.eye(n) + Hw.T @ Hw, Hw.T @ rw_ref
-    Hs, rw, A, g = np.full((m, n), np.nan), np.empty(m), np.full((n, n), np.nan), np.empty(n)
-    ws, wi = np.empty(7 * m + 16 * n + 14), np.empty(2 * m + n + 1, np.int64)
-    kw._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A, g, ws, wi, True)
+    rw, A, g = np.empty(m), np.full((n, n), np.nan), np.empty(n)
+    n_ws, n_wi = kw.scratch_sizes(n, Laug.shape[0] - n)
+    ws, wi = np.full(n_ws, np.nan), np.empty(n_wi, np.int64)
+    kw._whiten_information(hx, Hval, cols, y, rws, Laug, rw, A, g, ws, wi, True)
     np.testing.assert_allclose(rw, rw_ref, rtol=1e-15, atol=0)
     np.testing.assert_allclose(A, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
     np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
     assert np.array_equal(A, A.T)
     # without ``upper`` (an EKF step, which reads only the lower triangle): the same lower triangle and g, and the
-    # upper triangle not mirrored (left NaN above the diagonal blocks of the strips, without virtual columns)
+    # upper triangle not mirrored (left NaN above the diagonal blocks of the strips)
     A1, g1 = np.full((n, n), np.nan), np.empty(n)
-    kw._whiten_staircase(hx, Hval, cols, y, rws, Laug, Hs, rw, A1, g1, ws, wi, False)
+    kw._whiten_information(hx, Hval, cols, y, rws, Laug, rw, A1, g1, ws, wi, False)
     low = np.tril_indices(n)
     assert np.array_equal(A1[low], A[low]) and np.array_equal(g1, g)
     assert np.isnan(A1[0, n - 1])
@@ -415,6 +416,28 @@ def test_whiten_staircase_equals_the_dense_product(N, virtual, masked):
     else:  # the dense product below LARGE_N (g summed row by row as the rows are formed)
         np.testing.assert_allclose(A2, A_ref, rtol=0, atol=1e-13 * np.abs(A_ref).max())
         np.testing.assert_allclose(g2, g_ref, rtol=0, atol=1e-13 * np.abs(g_ref).max())
+
+
+def test_information_rows_are_the_sparse_gram_product():
+    """``_information_rows``: ``Y = H^T R^-1 H`` and ``H^T R^-1 (y - h)`` of the row-sparse rows (a masked feature's
+    zero rows add nothing), against the dense products; ``Y`` has the arrow shape: two points never meet."""
+    from stereopose_mc.core.kernels import whiten as kw
+    from stereopose_mc.core.kernels.model import NNZ
+
+    rng = np.random.default_rng(5)
+    n, cols, Hval = _staircase_rows(rng, 6, False, masked=(2,))
+    m = cols.shape[0]
+    _, y, hx, rws = _whitening_inputs(rng, n, m, False)
+    Hd = np.zeros((m, n))
+    for r in range(m):
+        np.add.at(Hd[r], cols[r], Hval[r])
+    Hd *= rws[:, None]
+    rw, Y, gy = np.empty(m), np.full((n, n), np.nan), np.empty(n)
+    kw._information_rows(hx, Hval, cols, y, rws, rw, Y, gy, np.empty(NNZ), np.empty(NNZ, np.int64))
+    np.testing.assert_allclose(Y, Hd.T @ Hd, rtol=0, atol=1e-13 * np.abs(Y).max())
+    np.testing.assert_allclose(gy, Hd.T @ rw, rtol=0, atol=1e-13 * np.abs(gy).max())
+    assert np.all(Y[12:15, 15:18] == 0.0) and np.all(Y[18:21, 12:15] == 0.0)  # points 0 and 2 (masked), 1
+    assert np.all(Y[18:21] == 0.0)  # the masked point's rows
 
 
 @pytest.mark.parametrize("virtual", [False, True])

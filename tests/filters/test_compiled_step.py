@@ -146,7 +146,7 @@ def test_every_step_of_whole_trials_agrees(monkeypatch, case, error_state):
 
 @pytest.mark.parametrize("error_state", ["aligned"])
 def test_every_step_of_whole_trials_with_20_points_agrees(monkeypatch, error_state):
-    """Whole trials with 20 feature points (``n`` = 74: the kernels' large-``n`` path, ``_whiten_staircase``, the
+    """Whole trials with 20 feature points (``n`` = 74: the kernels' large-``n`` path, ``_whiten_information``, the
     centered coordinates of the aligned chart and ``_posterior_covariance_rev``), with the filters that converge in
     case B (the IEKF, the EKF with an iterated first update: the plain EKF is lost, and past 20 steps its numpy
     path moves by 1e-8 sigma for one ulp): every step agrees as in case B. (The other charts: one update each,
@@ -487,7 +487,7 @@ def test_error_state_update_kernels_equal_numpy_on_a_well_conditioned_step(kind,
 @pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 def test_update_kernels_past_64_columns_equal_numpy(kind, control, masked, error_state):
     """With 20 and 30 feature points (``n`` = 74-75 and 104-105 > 64) the kernels take the large-``n`` path: the
-    staircase Gram product (``_whiten_staircase``), in the aligned chart in centered point coordinates, and ``A``
+    information form of ``A`` (``_whiten_information``), in the aligned chart in centered point coordinates, and ``A``
     factorized in reverse order for ``P+`` (``_posterior_covariance_rev``). One well-conditioned update in each
     chart (feature mask and gate, EKF or IEKF) equals the numpy update to round-off: 1e-10 of sigma and of the
     covariance in the error states; in the full state (whose prior includes the quaternion's norm direction)

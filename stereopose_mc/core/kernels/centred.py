@@ -2,13 +2,13 @@
 
 The aligned chart's features see the points only through their deviations from the centroid, so the centroid's
 error (the gauge) is never measured and keeps its prior variance while the deviations shrink. Whitened by the
-Cholesky factor of ``P`` itself, a feature's row is the difference of two large rows (its point's and the mean's);
-split into a staircase part and the point sums (``whiten._whiten_staircase``), the Gram product squares that
+Cholesky factor of ``P`` itself, a feature's row is the difference of two large rows (its point's and the mean's),
+and the information form of the large-``n`` whitening (``whiten._whiten_information``) squares that
 cancellation. Past ``LARGE_N`` columns the aligned chart is therefore whitened in centred coordinates
 ``e' = T e``: the common block, then ``e_bar`` (the points' mean error, 3), then ``d_f = e_Pf - e_bar`` for the
 first ``N - 1`` points, then ``k``: ``P' = T P T^T = L' L'^T`` and ``L = T^-1 L'`` (a square root of ``P``, not
 triangular). A feature's row then sees its own ``d_f`` (the last point: minus the sum of all ``d``, a virtual
-column of small rows) and ``e_bar`` with the coefficient ``h_own + N h_virtual`` (~0): a staircase again.
+column of small rows) and ``e_bar`` with the coefficient ``h_own + N h_virtual`` (~0): an arrow again.
 """
 
 from __future__ import annotations

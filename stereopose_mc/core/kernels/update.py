@@ -25,9 +25,9 @@ A measurement row with ``mask = False`` (a feature dropped by the tracker or rej
 the gate) is taken out of the update exactly as ``filters.gating.masked_measure`` does:
 ``h = y`` and ``H = 0`` on that row.
 
-Past ``LARGE_N`` (64) columns the update exploits more structure (issue 14, growth with
-the number of points): the rows of ``Hw`` stop where ``L`` is zero (``_whiten_staircase``: the
-Gram product by strips over the rows that reach them), the aligned chart is whitened in
+Past ``LARGE_N`` (64) columns the update exploits more structure (growth with the number of
+points): ``A`` is formed from the arrow-shaped information ``H^T R^-1 H`` (``whiten._whiten_information``:
+``I + L^T Y L`` by strips, no ``m n^2`` Gram product of the rows), the aligned chart is whitened in
 centered point coordinates (``_center_cov``: the points' mean and their deviations, so that
 the unmeasured centroid does not cancel in the product). Up to 64 columns (case B's 29; 20
 points) the kernels do without: there the extra passes cost more than they save.
@@ -64,7 +64,7 @@ from .consistency import _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, Q_END, _measure_one
 from .rows import _dot, _dot_row
 from .triangular import _factor, _posterior_covariance_rev, _solve
-from .whiten import LARGE_N, _whiten_g, _whiten_staircase
+from .whiten import LARGE_N, _whiten_g, scratch_sizes
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -90,11 +90,11 @@ def _masked(hx, Hval, y, mask):
 def _linearization(hx, Hval, cols, yb, mask, rws, Laug, Hw, rw, A, g, ws, wi, upper, cen, Hc, cc, N):
     """The whitened system of one iterate from its ``h`` and row-sparse ``H`` (``_measure_at``): the masked rows
     taken out (``_masked``), then ``Hw``, ``rw``, ``g`` and ``A`` (``whiten._whiten_g``), or in the centred
-    coordinates (``cen``: ``centred._centered_model_rows`` into ``Hc``, ``cc``, then ``whiten._whiten_staircase``)."""
+    coordinates (``cen``: ``centred._centered_model_rows`` into ``Hc``, ``cc``, then ``whiten._whiten_g``)."""
     _masked(hx, Hval, yb, mask)
     if cen:
-        _centered_model_rows(Hval, cols, Hc, cc, Hw.shape[1], N)
-        _whiten_staircase(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
+        _centered_model_rows(Hval, cols, Hc, cc, A.shape[0], N)
+        _whiten_g(hx, Hc, cc, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
     else:
         _whiten_g(hx, Hval, cols, yb, rws, Laug, Hw, rw, A, g, ws, wi, upper)
 
@@ -241,18 +241,19 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
     Hval = np.zeros((m, NNZ))
     Hdummy = np.zeros((m, NNZ))
     Laug = np.empty((n + (VEC if chart == CHART_ALIGNED else 0), n))  # L, then the rows of the virtual columns (_with_virtual)
-    Hw = np.empty((m, n))
-    ws = np.empty(7 * m + 16 * n + 14)  # _whiten_staircase's scratch
-    big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n factorization)
+    big = n > LARGE_N  # P- factorized by _cholesky_t (the large-n factorization); A by _whiten_information
+    Hw = np.empty((0 if big else m, n))  # _whiten's rows (not formed past LARGE_N)
+    n_ws, n_wi = scratch_sizes(n, Laug.shape[0] - n) if big else (0, 0)
+    ws = np.empty(n_ws)  # _whiten_information's scratch
+    wi = np.empty(n_wi, np.int64)
     # whether A's upper triangle is read (the iterations' A z, the Mahalanobis stopping rule's, the copy a step control
-    # keeps): not in an EKF step, whose large-n whitening then leaves it unwritten (_whiten_staircase)
+    # keeps): not in an EKF step, whose large-n whitening then leaves it unwritten (_whiten_information)
     upper = max_iter > 1 or control != CONTROL_NONE or (tol > 0.0 and stopping == STOP_MAHALANOBIS)
     cen = chart == CHART_ALIGNED and n > LARGE_N  # whitened in the centered point coordinates (above)
     Np = _e_n_points(n)
     g2 = np.empty(n)  # _sqrt_mul's scratch
     Hc = np.zeros((m, NNZ) if cen else (0, NNZ))
     cc = np.zeros((m, NNZ) if cen else (0, NNZ), np.int64)
-    wi = np.empty(2 * m + n + 1, np.int64)
     rw = np.empty(m)
     A = np.empty((n, n))
     Afin = np.empty((n, n))
