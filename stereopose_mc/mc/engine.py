@@ -5,11 +5,14 @@ A run directory holds (see docs/outputs.md):
 - ``config.yaml`` (the resolved scenario) and ``manifest.json`` (version, git revision,
   root seed, trial count, filters, host, start/end, scenario hash, per-chunk timings);
 - ``chunks/``: one ``trials-<first>-<last>.parquet`` (+ ``timeseries-...``, ``timing-...``)
-  per finished chunk, each written atomically (temporary name, then rename) by the
-  driver as soon as the chunk finishes, so a run killed at any moment loses at most
-  the chunks in flight;
+  per finished chunk, each written atomically (temporary name, then rename) as soon as
+  the chunk finishes (by the thread that computed it, or by the driver for chunks from
+  worker processes), so a run killed at any moment loses at most the chunks in flight;
 - after all chunks: ``trials.parquet``, ``timeseries.parquet``, ``timing.parquet`` and
-  the percentile tables, merged from the chunk files in trial order.
+  the percentile tables, merged in trial order into a staging directory and published
+  once every chunk verifies (``rundir/publish.py``). The time series is merged while the
+  chunks run (``rundir/merge.py``): this session's chunks from memory as their
+  predecessors are in, earlier sessions' chunks from their files.
 
 Determinism: trial ``j`` draws only from the ``j``-th ``SeedSequence`` child of the root
 seed, and every kernel treats the trials of a chunk independently, so the merged
@@ -45,6 +48,7 @@ from ..config.schema import SCHEMA_VERSION, Scenario
 from ..config.sensor import feature_count
 from ..core.layout import n_state
 from ..rundir import integrity, publish, runlock, store, tables
+from ..rundir.merge import InOrderMerge
 from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
@@ -260,7 +264,7 @@ def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: 
     first, last = int(out.trials[0]), int(out.trials[-1])
     meta = {**meta, "stereopose_mc.run_id": spec.run_id, "stereopose_mc.first": str(first),
             "stereopose_mc.last": str(last)}  # fmt: skip
-    if out.timeseries_table is not None and out.timeseries_table.num_rows:
+    if _timeseries_rows(out) is not None:
         _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_table, meta)
     if out.tracks_table is not None:
         _write_table(chunk_dir / _chunk_name("tracks", out.trials), out.tracks_table, meta)
@@ -379,21 +383,30 @@ def connect_dask(address: str | None, jobs: int, info: dict | None = None):
 DASK_CONNECT_TIMEOUT_S = 10
 
 
-def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
-              counter: StepCounter | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
+def _computed_and_written(write: Callable[[ChunkOutput], None] | None, scenario_json: str, trials: np.ndarray,
+                          timeseries: str, kernels: str,
+                          tick: Callable[[int], None] | None) -> ChunkOutput:  # fmt: skip
+    """:func:`compute_chunk`, then ``write`` of its output, in the calling thread."""
+    return _written(write, compute_chunk(scenario_json, trials, timeseries, kernels, tick))
+
+
+def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, counter: StepCounter | None = None,
+              write: Callable[[ChunkOutput], None] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
     """Chunk outputs as they finish, from ``opts.jobs`` threads of this process (the nogil compiled kernels).
 
     The standard library's thread pool (joblib's threading backend costs ~0.06 s of imports, paid
-    by every run). One BLAS limit for all threads (per-thread limits would undo each other). When
-    the consumer stops early (an error, Ctrl-C), chunks not yet started are cancelled and the
-    running ones are waited for (a thread cannot be killed).
+    by every run). One BLAS limit for all threads (per-thread limits would undo each other). The
+    thread that computed a chunk also writes it (``write``: Parquet encoding and checksums release
+    the GIL), so the consumer's thread stays free. When the consumer stops early (an error,
+    Ctrl-C), chunks not yet started are cancelled and the running ones are waited for (a thread
+    cannot be killed; they still write their files, which a resume keeps).
     """
     from concurrent.futures import ThreadPoolExecutor, as_completed
 
     with threadpool_limits(limits=1):
         pool = ThreadPoolExecutor(max_workers=opts.jobs, thread_name_prefix="spmc-chunk")
         try:
-            futures = [pool.submit(compute_chunk, scenario_json, c, opts.timeseries, opts.kernels,
+            futures = [pool.submit(_computed_and_written, write, scenario_json, c, opts.timeseries, opts.kernels,
                                    None if counter is None else StepCounter.tick_of(counter.steps, int(c[0])))
                        for c in chunks]  # fmt: skip
             for f in as_completed(futures):
@@ -403,12 +416,14 @@ def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
 
 
 def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, info: dict | None = None,
-             counter: Callable[[Mapping | None], StepCounter] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
+             counter: Callable[[Mapping | None], StepCounter] | None = None,
+             write: Callable[[ChunkOutput], None] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
     """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest).
 
     ``counter(steps)``: called once with the mapping the chunks will count their trial-steps in
     (None: a plain dict, for this process's threads; a Manager's dict for loky processes); Dask's
-    remote chunks are counted when they end.
+    remote chunks are counted when they end. ``write(chunk)``: done to every chunk before it is
+    yielded: in the thread that computed it (inline, threading), else in this one as it arrives.
     """
     images = json.loads(scenario_json)["measurements"].get("source") == "images"
     where = local_backend(opts, len(chunks), images)
@@ -417,11 +432,11 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
     if where in ("inline", "threading"):
         sc = None if counter is None else counter(None)
         if where == "threading":
-            yield from _threaded(scenario_json, chunks, opts, sc)
+            yield from _threaded(scenario_json, chunks, opts, sc, write)
             return
         for c in chunks:
-            yield compute_chunk(scenario_json, c, opts.timeseries, opts.kernels,
-                                None if sc is None else StepCounter.tick_of(sc.steps, int(c[0])))  # fmt: skip
+            yield _computed_and_written(write, scenario_json, c, opts.timeseries, opts.kernels,
+                                        None if sc is None else StepCounter.tick_of(sc.steps, int(c[0])))  # fmt: skip
         return
     from joblib import Parallel, delayed, parallel_config
 
@@ -436,13 +451,14 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
         steps = None
     calls = (delayed(compute_chunk_in_worker)(driver, scenario_json, c, opts.timeseries, opts.kernels, steps)
              for c in chunks)  # fmt: skip
+    written = functools.partial(_written, write)
     if where == "dask":
         from dask.distributed import KilledWorker
 
         client, cluster = connect_dask(opts.scheduler, opts.jobs, info)
         try:
             with parallel_config(backend="dask"):
-                yield from Parallel(return_as="generator_unordered")(calls)
+                yield from map(written, Parallel(return_as="generator_unordered")(calls))
         except (KilledWorker, OSError) as exc:  # a chunk that kept killing workers, a lost scheduler
             raise RunError(f"Dask backend failed ({type(exc).__name__}: {exc}); the finished chunks are kept: "
                            "continue with spmc run --resume DIR (see docs/distributed.md)") from None  # fmt: skip
@@ -453,10 +469,16 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
         return
     try:
         with parallel_config(backend=where, n_jobs=opts.jobs):
-            yield from Parallel(return_as="generator_unordered")(calls)
+            yield from map(written, Parallel(return_as="generator_unordered")(calls))
     finally:
         if manager is not None:
             manager.shutdown()
+
+
+def _written(write: Callable[[ChunkOutput], None] | None, co: ChunkOutput) -> ChunkOutput:
+    if write is not None:
+        write(co)
+    return co
 
 
 def _merged(files: list[Path], order: dict[str, int]) -> tables.Columns:
@@ -468,14 +490,16 @@ def _merged(files: list[Path], order: dict[str, int]) -> tables.Columns:
     return tables.take_rows(cols, np.lexsort((rank, cols["trial"])))
 
 
-def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
-             spec: integrity.RunSpec | None = None, dest: Path | None = None) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
+def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str], spec: integrity.RunSpec | None = None,
+             dest: Path | None = None,
+             timeseries: InOrderMerge | None = None) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
     """Merge chunk files into the run's tables and write the percentile tables into ``dest``
     (default ``out``; a run stages them and publishes them together: ``rundir/publish.py``).
 
-    With ``spec``, the merged tables are checked first (exactly one row per trial x filter,
-    the full time series when it is on): :class:`integrity.IntegrityError`, nothing written.
-    Returns the merged trials table and the percentile table.
+    ``timeseries``: the run's time-series merge (:func:`timeseries_merge`, fed as the chunks
+    finished; None: no time series), closed here. With ``spec``, the merged tables are checked
+    (exactly one row per trial x filter, the full time series when it is on):
+    :class:`integrity.IntegrityError`. Returns the merged trials table and the percentile table.
     """
     order = {name: i for i, name in enumerate(filter_order)}
     trials = _merged(sorted((out / "chunks").glob("trials-*.parquet")), order)
@@ -487,15 +511,10 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     files = sorted(chunk_dir.glob("timing-*.parquet"))
     if files:
         _write_table(out / "timing.parquet", _merged(files, order), _parquet_meta(scn, shash, "timing"))
-    # the time series can be large: streamed chunk by chunk (each chunk file is already
-    # sorted by trial, filter, step, and the chunks are disjoint trial ranges, so file
-    # order by first trial is trial order)
-    files = sorted(chunk_dir.glob("timeseries-*.parquet"))
-    if files:
-        n_ts = store.write_parquet_stream(out / "timeseries.parquet", files, _parquet_meta(scn, shash, "timeseries"),
-                                          units=tables.COLUMN_UNITS)
+    if timeseries is not None:
+        n_ts = timeseries.close()
         if spec is not None and n_ts != spec.rows("timeseries", 0, spec.trials - 1):
-            raise integrity.IntegrityError([f"{out / 'timeseries.parquet'}: {n_ts} rows, not the full time series"])
+            raise integrity.IntegrityError([f"{timeseries.stream.path}: {n_ts} rows, not the full time series"])
     files = sorted(chunk_dir.glob("tracks-*.parquet"))  # measurements.source images | tracks
     if files:
         store.write_parquet_stream(out / "tracks.parquet", files, _parquet_meta(scn, shash, "tracks"),
@@ -507,6 +526,18 @@ def finalize(out: Path, scn: Scenario, shash: str, filter_order: list[str],
     store.atomic_write_text(out / "percentiles.md", f"# {scn.name}: percentiles of per-trial mean errors\n\n"
                             + percentiles_markdown(pt, trials, excl))  # fmt: skip
     return trials, pt
+
+
+def timeseries_merge(path: Path, scn: Scenario, shash: str, keys: Iterable[int]) -> InOrderMerge:
+    """The merge of the chunks' time series (keys: their first trials) into ``path``, the run's
+    ``timeseries.parquet`` (fixed row groups, metadata and units: the bytes do not depend on the chunking)."""
+    meta, units = _parquet_meta(scn, shash, "timeseries"), tables.COLUMN_UNITS
+    return InOrderMerge(keys, store.ParquetStream(path, meta, units))
+
+
+def _timeseries_rows(co: ChunkOutput) -> pa.Table | None:
+    """A chunk's time-series table, None when it has no rows (then it has no time-series file)."""
+    return co.timeseries_table if co.timeseries_table is not None and co.timeseries_table.num_rows else None
 
 
 def run_spec(scn: Scenario, shash: str, timeseries: str, code: str | None = None) -> integrity.RunSpec:
@@ -660,28 +691,53 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     store.write_json(out / "manifest.json", manifest)  # kernels and backend before the first chunk
     if opts.kernels == "compiled" and chunks:
         _say(opts, compile_note())
-    with ticker:
-        for co in _iterate(scenario_json, chunks, opts, manifest["backend"], ticker.counter if progress else None):
-            _write_chunk(chunk_dir, co, meta, spec)
-            manifest.setdefault("chunks", []).append(
-                {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
-                 "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
-            )
-            store.write_json(out / "manifest.json", manifest)
-            ticker.chunk_done(co.trials.size, co.diverged_by)
-    v = integrity.verify_chunks(chunk_dir, spec)
-    stage = publish.new_stage(out)
+    stage = publish.new_stage(out)  # the merged tables are written here; published once all chunks verify
+    ts_merge = None
+    if spec.timeseries != "none":  # fed as the chunks finish: no read-back of this session's chunk files
+        ts_merge = timeseries_merge(stage / "timeseries.parquet", scn, shash, [c["first"] for c in v.chunks]
+                                    + [int(c[0]) for c in chunks])  # fmt: skip
     try:
+        if ts_merge is not None:  # the chunks of earlier sessions: from their files, at their turn
+            for c in v.chunks:
+                name = integrity.chunk_file("timeseries", c["first"], c["last"])
+                ts_merge.add(c["first"], path=chunk_dir / name if name in c["files"] else None)
+        write = functools.partial(_write_chunk, chunk_dir, meta=meta, spec=spec)
+        with ticker:
+            for co in _iterate(scenario_json, chunks, opts, manifest["backend"], ticker.counter if progress else None,
+                               write):  # fmt: skip
+                manifest.setdefault("chunks", []).append(
+                    {"first": int(co.trials[0]), "last": int(co.trials[-1]), "wall_s": round(co.wall_s, 4),
+                     "jobs": opts.jobs, "backend": opts.backend}  # fmt: skip
+                )
+                store.write_json(out / "manifest.json", manifest)
+                if ts_merge is not None:
+                    ts = _timeseries_rows(co)
+                    path = None if ts is None else chunk_dir / _chunk_name("timeseries", co.trials)
+                    ts_merge.add(int(co.trials[0]), ts, path)
+                ticker.chunk_done(co.trials.size, co.diverged_by)
+        v = integrity.verify_chunks(chunk_dir, spec)
         integrity.check_complete(v, spec)
-        trials, pt = finalize(out, scn, shash, spec.filters, spec, dest=stage)
+        if ts_merge is not None and ts_merge.keys != [c["first"] for c in v.chunks]:
+            raise integrity.IntegrityError([f"{chunk_dir}: the verified chunks are not the ones this session merged"])
+        trials, pt = finalize(out, scn, shash, spec.filters, spec, dest=stage, timeseries=ts_merge)
     except integrity.IntegrityError as exc:
-        publish.remove_stages(out)
+        _discard(ts_merge, out)
         raise RunError("refusing to merge (nothing published): " + "; ".join(exc.problems)) from None
+    except BaseException:
+        _discard(ts_merge, out)
+        raise
     manifest["published"] = publish.publish(stage, out)
     manifest["end"] = store.now_iso()
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
     store.write_json(out / "manifest.json", manifest)
     return RunResult(out, trials, pt, time.perf_counter() - t_start, len(chunks))
+
+
+def _discard(ts_merge: InOrderMerge | None, out: Path) -> None:
+    """Drop a session's unpublished merge: the partial time series and the staging directory."""
+    if ts_merge is not None:
+        ts_merge.abort()
+    publish.remove_stages(out)
 
 
 def compile_note() -> list[str]:

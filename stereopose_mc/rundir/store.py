@@ -12,6 +12,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+import threading
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -60,12 +61,21 @@ def base_manifest(command: list[str] | None = None) -> dict[str, Any]:
     }
 
 
+_UMASK_LOCK = threading.Lock()  # chunk files are written from several threads (mc/engine.py)
+
+
 @functools.lru_cache(maxsize=1)
-def umask() -> int:
-    """The process's file-creation mask (read once: setting it back and forth is not thread-safe)."""
+def _read_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def umask() -> int:
+    """The process's file-creation mask (read once, under a lock: reading it means setting it back
+    and forth, which two threads doing at once would get wrong)."""
+    with _UMASK_LOCK:
+        return _read_umask()
 
 
 def refuse_non_regular(path: Path) -> None:
@@ -179,53 +189,103 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table | dict, metadata: dict
         raise
 
 
-def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, str] | None = None,
-                         row_group_rows: int = 262_144, units: dict[str, str] | None = None) -> int:  # fmt: skip
-    """Concatenate Parquet files into one, streaming, with fixed-size row groups.
+ROW_GROUP_ROWS = 262_144  # rows per row group of a streamed file (the last one fewer)
 
-    Only one source file and one row group are in memory at a time, so memory stays
-    bounded whatever the total size. Row groups hold exactly ``row_group_rows`` rows
-    (the last one fewer) whatever the sources' sizes, so the output's bytes do not
-    depend on how the rows were split into sources. Returns the number of rows.
+
+class ParquetStream:
+    """One Parquet file written from tables appended in row order, with fixed-size row groups.
+
+    The rows go to a temporary file next to ``path``; :meth:`close` renames it to ``path``,
+    :meth:`abort` (or leaving a ``with`` block by an exception) deletes it: nothing is ever
+    half-written at ``path``. At most one row group and the last appended table are held,
+    so memory stays bounded whatever the total size. Row groups hold exactly
+    ``row_group_rows`` rows (the last one fewer) whatever the sizes of the appended tables,
+    and the file carries only ``metadata`` (the tables' own schema metadata, e.g. a chunk's
+    trial range, is dropped), so its bytes do not depend on how the rows were split.
+    ``units``: column -> unit, stored as the field metadata ``unit``.
     """
-    import pyarrow as pa
+
+    def __init__(self, path: Path, metadata: dict[str, str] | None = None, units: dict[str, str] | None = None,
+                 row_group_rows: int = ROW_GROUP_ROWS):  # fmt: skip
+        self.path = Path(path)
+        self.rows = 0
+        self._meta = {k.encode(): str(v).encode() for k, v in (metadata or {}).items()}
+        self._units, self._group = units, row_group_rows
+        self._tmp: str | None = None
+        self._writer = None
+        self._buffered: list[pa.Table] = []
+        self._n_buf = 0
+
+    def append(self, table: pa.Table) -> None:
+        """Append ``table``'s rows (the same columns and types as the tables before it)."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        t = with_units(table.replace_schema_metadata(self._meta), self._units)
+        if self._writer is None:
+            fd, self._tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
+            os.close(fd)
+            self._writer = pq.ParquetWriter(self._tmp, t.schema, **parquet_options(t.schema))
+        self._buffered.append(t)
+        self._n_buf += t.num_rows
+        self.rows += t.num_rows
+        while self._n_buf >= self._group:
+            merged = pa.concat_tables(self._buffered)
+            self._writer.write_table(merged.slice(0, self._group), row_group_size=self._group)
+            rest = merged.slice(self._group)
+            self._buffered, self._n_buf = [rest], rest.num_rows
+
+    def close(self) -> int:
+        """Write the last row group and rename the file into place; the number of rows.
+        ``ValueError`` when nothing was appended (no file is written)."""
+        import pyarrow as pa
+
+        if self._writer is None:
+            raise ValueError(f"{self.path}: no tables to write")
+        try:
+            if self._n_buf:
+                self._writer.write_table(pa.concat_tables(self._buffered), row_group_size=self._group)
+            self._buffered, self._n_buf = [], 0
+            self._writer.close()
+            _publish(self._tmp, self.path)
+        except BaseException:
+            self.abort()
+            raise
+        self._writer = self._tmp = None
+        return self.rows
+
+    def abort(self) -> None:
+        """Drop what was written (the temporary file); ``path`` is left as it was."""
+        if self._writer is not None:
+            self._writer.close()
+        if self._tmp is not None:
+            Path(self._tmp).unlink(missing_ok=True)
+        self._writer = self._tmp = None
+        self._buffered, self._n_buf = [], 0
+
+    def __enter__(self) -> ParquetStream:
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:
+            self.abort()
+
+
+def read_parquet_file(path: Path) -> pa.Table:
+    """A whole Parquet file as a table (not ``pq.read_table``: it imports pandas, ``rundir/arrow.py``)."""
     import pyarrow.parquet as pq
 
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    writer = None
-    buffered: list[pa.Table] = []
-    n_buf = n_all = 0
-    try:
+    return pq.ParquetFile(path).read()
+
+
+def write_parquet_stream(path: Path, sources: list[Path], metadata: dict[str, str] | None = None,
+                         row_group_rows: int = ROW_GROUP_ROWS, units: dict[str, str] | None = None) -> int:  # fmt: skip
+    """Concatenate Parquet files into one, streaming (:class:`ParquetStream`: one source file in
+    memory at a time, fixed-size row groups, atomic). Returns the number of rows."""
+    with ParquetStream(path, metadata, units, row_group_rows) as stream:
         for src in sources:
-            t = pq.ParquetFile(src).read()  # not pq.read_table: it imports pandas (rundir/arrow.py)
-            # the output's metadata only: the sources' own (e.g. a chunk's trial range) would
-            # make the bytes depend on the chunking
-            t = t.replace_schema_metadata({k.encode(): str(v).encode() for k, v in (metadata or {}).items()})
-            t = with_units(t, units)
-            if writer is None:
-                writer = pq.ParquetWriter(tmp, t.schema, **parquet_options(t.schema))
-            buffered.append(t)
-            n_buf += t.num_rows
-            n_all += t.num_rows
-            while n_buf >= row_group_rows:
-                merged = pa.concat_tables(buffered)
-                writer.write_table(merged.slice(0, row_group_rows), row_group_size=row_group_rows)
-                rest = merged.slice(row_group_rows)
-                buffered, n_buf = [rest], rest.num_rows
-        if writer is None:
-            raise ValueError("no source files to concatenate")
-        if n_buf:
-            writer.write_table(pa.concat_tables(buffered), row_group_size=row_group_rows)
-        writer.close()
-        _publish(tmp, path)
-    except BaseException:
-        if writer is not None:
-            writer.close()
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return n_all
+            stream.append(read_parquet_file(src))
+        return stream.close()
 
 
 def read_parquet_metadata(path: Path) -> dict[str, str]:

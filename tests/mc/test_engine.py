@@ -154,3 +154,74 @@ def test_ctrl_c_keeps_finished_chunks_and_says_how_to_resume(tmp_path):
     assert f"spmc run --resume {out}" in err
     assert list((out / "chunks").glob("trials-*.parquet"))
     assert not (out / "trials.parquet").exists()
+
+
+def _first_chunk_slow(monkeypatch, seen=None, slow=0):
+    """The chunk of trial ``slow`` finishes last (the threads' other chunks overtake it); ``seen``: (first
+    trial, thread) per write."""
+    import threading
+
+    from stereopose_mc.mc import engine
+
+    real_compute, real_write = engine.compute_chunk, engine._write_chunk
+
+    def compute(scenario_json, trials, *args, **kwargs):
+        if int(trials[0]) == slow:
+            time.sleep(1.0)
+        return real_compute(scenario_json, trials, *args, **kwargs)
+
+    def write(chunk_dir, co, *args, **kwargs):
+        if seen is not None:
+            seen.append((int(co.trials[0]), threading.current_thread().name))
+        return real_write(chunk_dir, co, *args, **kwargs)
+
+    monkeypatch.setattr(engine, "compute_chunk", compute)
+    monkeypatch.setattr(engine, "_write_chunk", write)
+
+
+def test_chunks_finishing_out_of_order_merge_to_the_same_bytes(scenario, reference, tmp_path, monkeypatch):
+    from stereopose_mc import api
+
+    seen = []
+    _first_chunk_slow(monkeypatch, seen)
+    out = tmp_path / "run"
+    api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading", kernels="compiled")
+    same_bytes(reference, out)
+    assert [f for f, _ in seen][-1] == 0 and sorted(f for f, _ in seen) == [0, 2, 4, 6]  # 0 waited for the others
+    assert {name.split("_")[0] for _, name in seen} == {"spmc-chunk"}  # written by the threads that computed them
+    assert not list(out.glob(".publish-*"))
+
+
+def test_resume_merges_earlier_chunk_files_with_new_chunks(scenario, reference, tmp_path, monkeypatch):
+    from stereopose_mc import api
+
+    out = tmp_path / "run"
+    api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading")
+    for name in ("trials", "timing", "timeseries"):  # chunk 2-3 and 6-7 are to be recomputed
+        for rng in ("0000002-0000003", "0000006-0000007"):
+            (out / "chunks" / f"{name}-{rng}.parquet").unlink()
+    seen = []
+    _first_chunk_slow(monkeypatch, seen, slow=2)
+    api.resume(out, chunk_size=1)
+    assert seen[-1][0] == 2 and sorted(f for f, _ in seen) == [2, 3, 6, 7]  # merged: 0-1 (file), 2, 3, 4-5 (file), 6, 7
+    same_bytes(reference, out)
+
+
+def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch):
+    from stereopose_mc import api
+    from stereopose_mc.mc import engine
+
+    real = engine.compute_chunk
+
+    def compute(scenario_json, trials, *args, **kwargs):
+        if int(trials[0]) == 4:
+            time.sleep(0.5)  # chunks 0-3 are merged by now
+            raise RuntimeError("chunk 4-5 failed")
+        return real(scenario_json, trials, *args, **kwargs)
+
+    monkeypatch.setattr(engine, "compute_chunk", compute)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="chunk 4-5 failed"):
+        api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading")
+    assert not list(out.glob(".publish-*")) and not (out / "timeseries.parquet").exists()
+    assert {p.name for p in (out / "chunks").glob("chunk-*.json")} >= {"chunk-0000000-0000001.json"}
