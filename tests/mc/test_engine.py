@@ -225,3 +225,18 @@ def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch)
         api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading")
     assert not list(out.glob(".publish-*")) and not (out / "timeseries.parquet").exists()
     assert {p.name for p in (out / "chunks").glob("chunk-*.json")} >= {"chunk-0000000-0000001.json"}
+
+
+def test_summary_time_series_merges_the_first_trials_for_any_chunking(tmp_path):
+    import pyarrow.parquet as pq
+
+    scn = write_scenario(tmp_path / "s.yaml", trials=104, time=SHORT)
+    a, b = tmp_path / "a", tmp_path / "b"
+    run_ok("run", scn, "--out", a, "--jobs", 1, "--chunk-size", 104, "--timeseries", "summary")
+    run_ok("run", scn, "--out", b, "--jobs", 2, "--chunk-size", 5, "--timeseries", "summary")  # 100-103: none
+    same_bytes(a, b)
+    trials = pq.ParquetFile(b / "timeseries.parquet").read().column("trial").to_numpy()
+    assert sorted(set(trials.tolist())) == list(range(100))  # SUMMARY_TRIALS
+    assert len(trials) == 100 * 2 * 21  # 2 filters x 21 steps
+    assert (b / "chunks" / "trials-0000100-0000103.parquet").is_file()
+    assert not (b / "chunks" / "timeseries-0000100-0000103.parquet").exists()
