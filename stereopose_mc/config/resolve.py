@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,7 +11,7 @@ from numpy.typing import NDArray
 from ..core import state as st
 from ..core.orbit import Orbit
 from ..core.perturbed import Perturbations
-from ..core.unmodelled import Unmodelled, unmodelled, white_acceleration
+from ..core.unmodelled import Unmodelled, bias_as_white_variance, unmodelled, white_acceleration
 from .sensor import SensorSetup, feature_points_of, sensor_of, truth_sigmas
 from .filters import FilterBase, FilterSetup
 from .schema import CovarianceConfig, ProcessNoiseConfig, PseudoMeasurementConfig, Scenario
@@ -154,9 +155,8 @@ def filter_setup_of(f: FilterBase, s: Setup) -> FilterSetup:
         sigma_image=r.image_sigma if r.image_sigma is not None else s.sigma_image,
         sigma_flow=r.flow_sigma if r.flow_sigma is not None else s.sigma_flow,
         sigma_disparity=r.disparity_sigma if r.disparity_sigma is not None else s.sigma_disparity,
-        sigma_alpha=r.angular_acceleration_sigma_radps2
-        if r.angular_acceleration_sigma_radps2 is not None
-        else s.sigma_alpha,
+        sigma_alpha=math.sqrt((r.angular_acceleration_sigma_radps2 if r.angular_acceleration_sigma_radps2 is not None
+                               else s.sigma_alpha) ** 2 + pseudo_unmodelled_var(f.process_noise, s)),  # fmt: skip
         Q_diag=block_diag(process_noise_of(f.process_noise, s), s.n_points),
         transition=f.transition,
         taylor_order=f.taylor_order,
@@ -193,6 +193,18 @@ def process_noise_of(c: ProcessNoiseConfig, s: Setup) -> ProcessNoiseConfig:
                                 "omega_deg2ps2": c.omega_deg2ps2 + q_omega})  # fmt: skip
 
 
+def pseudo_unmodelled_var(c: ProcessNoiseConfig, s: Setup) -> float:
+    """What ``process_noise: auto`` adds to the variance of the pseudo rows (rad^2/s^4): they compare a measured
+    angular acceleration, which carries the truth's gravity-gradient torque, with the filter's torque-free
+    ``omega_dot(omega, k)``. Over the short runs of a scenario that torque is nearly constant, a bias of norm at most
+    ``u.gravity_gradient`` in every row, which the filter averages over the run's ``steps`` rows
+    (``core.unmodelled.bias_as_white_variance``). Zero without ``auto``, without the pseudo rows or without the
+    torque in the truth (docs/filters.md, Process noise ``auto``)."""
+    if not (c.auto and s.pseudo):
+        return 0.0
+    return bias_as_white_variance(unmodelled_of(s).gravity_gradient, s.steps)
+
+
 def process_noise_note(c: ProcessNoiseConfig, s: Setup) -> str | None:
     """One line on what ``process_noise: auto`` chose (None without ``auto``)."""
     if not c.auto:
@@ -202,4 +214,6 @@ def process_noise_note(c: ProcessNoiseConfig, s: Setup) -> str | None:
     u, q = unmodelled_of(s), process_noise_of(c, s)
     return (f"process_noise auto: rho {q.rho_m2:.3g} m^2, rho_dot {q.rho_dot_m2ps2:.3g} m^2/s^2 (J2 differential "
             f"{u.j2:.3g} m/s^2, drag differential {u.drag:.3g} m/s^2), omega {q.omega_deg2ps2:.3g} deg^2/s^2 "
-            f"(gravity gradient {u.gravity_gradient:.3g} rad/s^2)")
+            f"(gravity gradient {u.gravity_gradient:.3g} rad/s^2)"
+            + (f"; pseudo rows' sigma + {math.sqrt(pseudo_unmodelled_var(c, s)):.3g} rad/s^2 (in quadrature)"
+               if pseudo_unmodelled_var(c, s) > 0 else ""))  # fmt: skip

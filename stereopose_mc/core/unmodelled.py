@@ -116,3 +116,15 @@ def unmodelled(p: Perturbations | None, a: float, e: float, i: float, rho: float
 def white_acceleration(a: float, dt: float) -> tuple[float, float]:
     """Per-step variances ``(position a^2 dt^4 / 3, velocity (a dt)^2)`` of white noise ``q_c = a^2 dt``."""
     return a * a * dt**4 / 3.0, (a * dt) ** 2
+
+
+def bias_as_white_variance(b: float, rows: int, axes: int = 3) -> float:
+    """The variance ``rows b^2 / axes`` that a measurement row must add to stay consistent under a bias of norm at
+    most ``b`` spread over ``axes`` components, when the filter averages ``rows`` such rows.
+
+    A bias ``beta`` in a row the filter treats as white noise of variance ``s^2`` leaves the mean of ``K`` rows off
+    by ``beta`` while the filter claims ``s / sqrt(K)``: its NEES along that combination is ``1 + K beta^2 / s^2``,
+    near 1 only when ``s^2 >= K beta^2``. Per component ``beta^2 ~ b^2 / axes``.
+    """
+    return rows * b * b / axes
+

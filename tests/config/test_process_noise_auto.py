@@ -50,6 +50,25 @@ def test_auto_on_mission_realistic_is_the_derived_diagonal():
         np.testing.assert_array_equal(plain[k], v)
 
 
+def test_auto_widens_the_pseudo_rows_by_the_torque_they_see_as_a_bias():
+    """The pseudo rows compare the measured angular acceleration (with the truth's gravity-gradient torque) with the
+    torque-free model: ``auto`` adds the variance of a bias of norm ``alpha`` (the bound above) averaged over the
+    run's 100 rows, ``100 alpha^2 / 3``, in quadrature to the scenario's 1e-6 rad/s^2; nothing without ``auto`` or
+    without a truth model."""
+    scn = load_scenario_text(with_filters(REALISTIC, {"type": "iekf", "process_noise": "auto"},
+                                          {"type": "iekf", "name": "b"}), "s.yaml")  # fmt: skip
+    s = setup_of(scn)
+    auto, plain = (filter_setup_of(f, s).sigma_alpha for f in scn.filters)
+    sep = np.linalg.norm([10.0, 60.0, 10.0]) + 100.0 * np.linalg.norm([0.01, -0.0225, -0.01])
+    alpha = gravity_gradient_alpha(7170e3 * 0.95 - sep, [11.25, 13.0, 6.25])
+    assert plain == 1e-6
+    np.testing.assert_allclose(auto, np.sqrt(1e-12 + 100.0 * alpha**2 / 3.0), rtol=1e-12)
+    assert 8e-6 < auto < 9e-6
+    assert "pseudo rows' sigma + 8." in process_noise_notes(scn)[0][1]
+    b = load_scenario_text(with_filters(CASE_B, {"type": "iekf", "process_noise": "auto"}), "s.yaml")
+    assert filter_setup_of(b.filters[0], setup_of(b)).sigma_alpha == setup_of(b).sigma_alpha
+
+
 def test_auto_adds_to_given_blocks_and_mapping_form():
     """Beside ``auto`` the given blocks are the base the derived Q adds to; a plain mapping is taken as it is."""
     given, short, mapping = blocks(with_filters(

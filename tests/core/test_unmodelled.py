@@ -103,3 +103,17 @@ def test_unmodelled_without_truth_model_is_zero_and_flags_select():
     assert u.drag == 0.0 and u.gravity_gradient == 0.0
     u = um.unmodelled(Perturbations(gravity_gradient=True), 7e6, 0.1, 0.5, 50.0, 0.1, J)
     assert u.j2 == 0.0 and u.gravity_gradient == pytest.approx(um.gravity_gradient_alpha(7e6 * 0.9 - 50.0, J))
+
+
+def test_bias_as_white_variance_keeps_the_mean_of_the_rows_consistent():
+    """K rows with a bias beta and white noise sigma, treated as white noise of variance s^2: the mean's NEES
+    (Monte Carlo over 20,000 draws) is 1 + K beta^2 / s^2: 26 with s = sigma, 1 with s^2 = sigma^2 +
+    bias_as_white_variance(beta, K, 1) = sigma^2 + K beta^2."""
+    from stereopose_mc.core.unmodelled import bias_as_white_variance
+
+    rng = np.random.default_rng(3)
+    K, beta, sigma = 100, 0.5, 1.0
+    means = beta + sigma * rng.standard_normal((20000, K)).mean(axis=1)
+    for s2, expected in ((sigma**2, 26.0), (sigma**2 + bias_as_white_variance(beta, K, axes=1), 1.0)):
+        np.testing.assert_allclose(np.mean(means**2 / (s2 / K)), expected, rtol=0.03)
+    assert bias_as_white_variance(0.3, 12) == pytest.approx(0.36, rel=1e-15)

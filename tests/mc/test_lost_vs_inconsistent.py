@@ -23,10 +23,16 @@ FILTER_DETECTABLE = ("filter lost: ", "non-finite state or covariance", "covaria
 ROOT = config_path("B").parent
 
 
+# mission-realistic's IEKF with the default Q and the truth's R for the pseudo rows, without `process_noise: auto`:
+# the gravity-gradient torque then makes most trials inconsistent (docs/filters.md), which the tests below need
+PLAIN = {"filters": [{"type": "iekf", "tolerance": 0.01, "max_iterations": 10, "gating": {"probability": 0.999}}]}
+
+
 @pytest.fixture(scope="module", params=["mission-realistic", "mission-debris", "caseB"])
 def run(request, tmp_path_factory):
     scn = load_scenario(ROOT / f"{request.param}.yaml",
-                        {"trials": 6, "time": {"dt_s": 1.0, "duration_s": 40.0, "error_window_start_s": 10.0}})  # fmt: skip
+                        {"trials": 6, "time": {"dt_s": 1.0, "duration_s": 40.0, "error_window_start_s": 10.0},
+                         **(PLAIN if request.param == "mission-realistic" else {})})  # fmt: skip
     out = tmp_path_factory.mktemp(request.param) / "run"
     engine.run(scn, out, engine.RunOptions(jobs=1, command=["test"], kernels="compiled"))
     return scn, pd.read_parquet(out / "trials.parquet"), pd.read_parquet(out / "timeseries.parquet"), \
