@@ -54,7 +54,7 @@ from typing import Callable, Iterable
 import numpy as np
 import pandas as pd
 
-from ..config.resolve import DEG, filter_setup_of, process_noise_of, setup_of
+from ..config.resolve import DEG, filter_setup_of, process_noise_of, pseudo_unmodelled_var, setup_of
 from ..config.schema import Scenario
 from ..config.sensor import feature_count
 from ..core import errorstate as es
@@ -148,6 +148,12 @@ def scenario_of(scn: Scenario, index: int, params: dict[str, float]) -> Scenario
     f = d["filters"][index]
     pn = {KEYS[b]: _sig3(params[f"Q.{b}"]) for b in BLOCKS if f"Q.{b}" in params}
     if pn:  # tuned values in full: an ``auto`` entry's derived Q is in them, so ``auto`` goes
+        if f["process_noise"].get("auto"):  # and with it auto's widening of the pseudo rows: kept as the filter's own
+            s = setup_of(scn)
+            if pseudo_unmodelled_var(scn.filters[index].process_noise, s) > 0:
+                mn = dict(f.get("measurement_noise") or {})
+                mn["angular_acceleration_sigma_radps2"] = _sig3(filter_setup_of(scn.filters[index], s).sigma_alpha)
+                f["measurement_noise"] = mn
         f["process_noise"] = {**f["process_noise"], **pn, "auto": False}
     a_img = params.get("R", params.get("R.image"))
     a_flow = params.get("R", params.get("R.flow"))

@@ -126,7 +126,8 @@ def test_bad_values_give_one_line(value, path, fragment):
 
 def test_tune_starts_from_auto_and_writes_it_out():
     """``spmc tune`` on an ``auto`` entry starts from the values it resolves to; its tuned Q are those values in full,
-    so the tuned entry has no ``auto`` (the derived part would be added twice)."""
+    so the tuned entry has no ``auto`` (the derived part would be added twice), and keeps the pseudo rows' sigma that
+    ``auto`` widened as its own ``measurement_noise``."""
     from stereopose_mc.studies.tuning import scenario_of, start_params
 
     scn = load_scenario_text(with_filters(REALISTIC, {"type": "iekf", "process_noise": "auto"}), "s.yaml")
@@ -138,5 +139,11 @@ def test_tune_starts_from_auto_and_writes_it_out():
     pn = tuned.filters[0].process_noise
     assert not pn.auto and "auto" not in pn.model_dump()
     assert pn.omega_deg2ps2 == pytest.approx(2.0 * p["Q.omega"], rel=2e-3)  # 3 significant digits
+    # auto also widened the pseudo rows: without auto the tuned entry keeps that sigma as its own
+    s = setup_of(scn)
+    widened = filter_setup_of(scn.filters[0], s).sigma_alpha
+    assert widened > 8 * s.sigma_alpha
+    assert tuned.filters[0].measurement_noise.angular_acceleration_sigma_radps2 == pytest.approx(widened, rel=2e-3)
+    assert filter_setup_of(tuned.filters[0], setup_of(tuned)).sigma_alpha == pytest.approx(widened, rel=2e-3)
     untouched = scenario_of(scn, 0, {"R": 2.0})
     assert untouched.filters[0].process_noise.auto
