@@ -211,9 +211,8 @@ def process_noise_note(c: ProcessNoiseConfig, s: Setup) -> str | None:
         return None
     if s.perturbations is None:
         return "process_noise auto: the defaults (no truth_model: the truth is the filters' Keplerian, torque-free model)"
-    u, q = unmodelled_of(s), process_noise_of(c, s)
+    u, q, va = unmodelled_of(s), process_noise_of(c, s), pseudo_unmodelled_var(c, s)
     return (f"process_noise auto: rho {q.rho_m2:.3g} m^2, rho_dot {q.rho_dot_m2ps2:.3g} m^2/s^2 (J2 differential "
             f"{u.j2:.3g} m/s^2, drag differential {u.drag:.3g} m/s^2), omega {q.omega_deg2ps2:.3g} deg^2/s^2 "
             f"(gravity gradient {u.gravity_gradient:.3g} rad/s^2)"
-            + (f"; pseudo rows' sigma + {math.sqrt(pseudo_unmodelled_var(c, s)):.3g} rad/s^2 (in quadrature)"
-               if pseudo_unmodelled_var(c, s) > 0 else ""))  # fmt: skip
+            + (f"; pseudo rows' sigma + {math.sqrt(va):.3g} rad/s^2 (in quadrature)" if va > 0 else ""))  # fmt: skip
