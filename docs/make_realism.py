@@ -114,8 +114,8 @@ def variants(real: dict) -> list[tuple[str, str, dict]]:
         ("all-ungated", "everything, no gating", no_gating(real)),
         ("all-prior-start", "everything, the filter started from the N(truth, P0) draw (the thesis) instead of the "
                             "first stereo frame", prior_start(real)),
-        ("all-first-order", "everything, the flow and pseudo rows' R without their linearization's variance (the "
-                            "thesis)",
+        ("all-first-order", "everything, without the second-order terms: the flow and pseudo rows' R and omega's Q "
+                            "without their linearization's variance (the thesis)",
          first_order(real)),
         ("all-plain-noise", "everything, the filter's Q the defaults and the pseudo rows' R the truth's noise, not "
                             "what `process_noise: auto` derives from the truth model", plain_noise(real)),
@@ -268,7 +268,7 @@ def reading(rows: list[dict], trials: int) -> str:
         out.append(f"- {name}: the most overconfident block is {b} (median NEES/dof {fmt(r[f'nees_{b}'])}; ideal "
                    f"{fmt(base[f'nees_{b}'])}); {r['inconsistent']} of {r['trials']} trials flagged inconsistent.")
     for name, fix in (("all-prior-start", "the start from the first stereo frame"),
-                      ("all-first-order", "the second-order R of the flow and pseudo rows"),
+                      ("all-first-order", "the second-order terms (the flow and pseudo rows' R, omega's Q)"),
                       ("all-plain-noise", "`process_noise: auto` (Q for the J2 and gravity-gradient accelerations, "
                                           "the pseudo rows' R widened by the torque they see as a bias)")):  # fmt: skip
         if name in by:

@@ -8,7 +8,8 @@ loses at most 5 (0 with the pseudo rows' second-order R and the gate's inflation
 configs/mission-realistic.yaml (100 trials, `process_noise: auto`): the IEKF loses at most 5 (0; 23 before the
 start from the first stereo frame and the second-order pseudo rows), and the issue's consistency and accuracy
 targets hold with binomial margins (``test_mission_realistic_is_consistent_and_accurate``). configs/mission-debris.yaml (100
-trials): the IEKF loses at most 5 (3). configs/caseB-images.yaml (rendered images and the tracker; 100 trials:
+trials): the IEKF loses at most 5 and at most 15 of its trials are flagged inconsistent (0 and 3,
+``test_mission_debris_iekf_stays_on_track_and_consistent``). configs/caseB-images.yaml (rendered images and the tracker; 100 trials:
 0 lost, median gauge NEES/dof 1.85 over the occupied slots, docs/images.md), here on 20 trials: at most 3 lost (a
 binomial bound for a 5 % rate: P(>= 4 of 20) = 1.6 %) and at most 14 trials with gauge NEES/dof above 2 (a median
 <= 2 means a rate <= 0.5 above it: P(>= 15 of 20) = 2.1 %). The runs are deterministic per
@@ -46,7 +47,6 @@ def test_case_b_iekf_stays_on_track_and_consistent(tmp_path):
 LOST = [
     ("caseB-outliers", "iekf_gated", 100, 5),
     ("mission-realistic", "iekf", 100, 5),
-    ("mission-debris", "iekf", 100, 5),
 ]
 
 
@@ -96,3 +96,17 @@ def test_mission_realistic_is_consistent_and_accurate(tmp_path):
     assert int((kept["e_theta"] > 1.0).sum()) <= 60, kept["e_theta"].describe()
     assert int((kept["e_theta"] > 3.0).sum()) <= 15, kept["e_theta"].describe()
 
+
+
+@pytest.mark.slow
+def test_mission_debris_iekf_stays_on_track_and_consistent(tmp_path):
+    """configs/mission-debris.yaml, 100 trials (issue targets: lost <= 5 %, >= 90 % of the IEKF's trials not flagged
+    inconsistent; today 0 lost and 3 inconsistent; 1 and 8 before the prediction's second-order Q). Lost as the
+    other rows' (at most 5 of 100); inconsistent as a count with a binomial margin: a 10 % rate flags more than 15
+    of 100 with probability 4 %."""
+    run = api.run(api.load(CONFIGS / "mission-debris.yaml"), trials=100, out=tmp_path / "debris")
+    t = run.trials
+    iekf = t[t["filter"] == "iekf"]
+    assert len(iekf) == 100
+    assert int(iekf["lost"].sum()) <= 5, iekf.loc[iekf["lost"], "lost_reason"].tolist()
+    assert int(iekf["inconsistent"].sum()) <= 15, iekf.loc[iekf["inconsistent"], "inconsistent_reason"].tolist()

@@ -56,7 +56,7 @@ class FilterSetup:
     gate_probability: float | None = None  # per-feature chi-square gate (filters/gating.py); None: no gate
     gate_inflate: bool = False  # the gate's covariance inflation when it would reject most features (gating.py)
     error_state: str = "full"  # "full" (additive, quaternion covariance) | "attitude" | "aligned" (docs/filters.md)
-    second_order: bool = True  # the flow and pseudo rows' R add their linearization's variance (core.camera, inertia)
+    second_order: bool = True  # the flow and pseudo rows' R, omega's Q add their linearization's variance (core)
 
     def iteration(self, first: bool) -> Iteration | None:
         """The Gauss-Newton knobs of an update (``first``: the update at ``t = dt``); None: the EKF update."""
@@ -84,10 +84,14 @@ class IEKFSetup(FilterSetup):
 
 @dataclass(frozen=True)
 class MEKFSetup(IEKFSetup):
-    """``max_iterations`` 1: the MEKF's plain (not iterated) update."""
+    """``max_iterations`` 1: the MEKF's plain (not iterated) update; ``first_update`` as the EKF's."""
+
+    first_update: str = "ekf"  # "iterated": the first update runs the IEKF's iterations
 
     def iteration(self, first: bool) -> Iteration | None:
-        return super().iteration(first) if self.max_iterations > 1 else None
+        if self.max_iterations > 1:
+            return super().iteration(first)
+        return FIRST_ITERATED if first and self.first_update == "iterated" else None
 
 
 @dataclass(frozen=True)
@@ -169,10 +173,10 @@ class FilterBase(_Model):
     integration_substeps: Annotated[int, Field(ge=1, le=1000)] = 1
     linearization: Literal["second_order", "first_order"] = Field(
         default="second_order",
-        description="R of the rows whose model multiplies two uncertain blocks: 'second_order' adds the variance "
-        "their linearization leaves out (the image velocities hold omega x points, the inertia pseudo-measurement "
-        "omega^2 and k: large while those are uncertain); 'first_order': the noise alone (the thesis). See "
-        "docs/filters.md, Second-order R")
+        description="R of the rows whose model multiplies two uncertain blocks, and Q of the rate's dynamics: "
+        "'second_order' adds the variance their linearization leaves out (the image velocities hold omega x points, "
+        "the inertia pseudo-measurement and omega's dynamics omega^2 and k: large while those are uncertain); "
+        "'first_order': the noise alone (the thesis). See docs/filters.md, Second-order R and Q")
 
     @field_validator("process_noise", mode="before")
     @classmethod
@@ -239,10 +243,17 @@ class MEKFConfig(_GaussNewtonBase):
     type: Literal["mekf"]
     error_state: Literal["aligned", "attitude"] = Field(default="attitude", description=_ERROR_STATE_DOC)
     iterated: bool = Field(default=False, description="run the IEKF's Gauss-Newton iterations in the update")
+    first_update: Literal["ekf", "iterated"] = Field(
+        default="ekf",
+        description="'iterated': the first update (t = dt) runs the IEKF's iterations (line search, Mahalanobis "
+        "stopping, tolerance 0.01, at most 10), the later ones are plain MEKF updates (with `iterated: true` every "
+        "update is iterated already)",
+    )
 
     def setup(self, **common: Any) -> MEKFSetup:
         return MEKFSetup(**common, tolerance=self.tolerance, max_iterations=self.max_iterations if self.iterated else 1,
-                         step_control=self.step_control, stopping=self.stopping)  # fmt: skip
+                         step_control=self.step_control, stopping=self.stopping,
+                         first_update=self.first_update)  # fmt: skip
 
 
 class UKFConfig(FilterBase):

@@ -120,3 +120,22 @@ def pseudo_second_order_variance(x: Array, P_ww: Array, P_kk: Array, P_kw: Array
         quad = S[..., a, a] * S[..., b, b] + S[..., a, b] ** 2
         out[..., i] = (c[..., i] ** 2 + s_c2) * quad + s_c2 * s_m2 + cov**2 + kk + mixed
     return out
+
+
+def rate_second_order_variance(x: Array, P_ww: Array, P_kk: Array, P_kw: Array, nu_dot) -> Array:
+    """A bound ``(..., 3)`` on the variance, per axis of ``L``, that the rate's dynamics' linearization leaves out.
+
+    The filter's ``omega' = D w_T' - w_L' - w_L x omega`` (docs/model.md) holds Euler's gyroscopic term
+    ``w_T' = -I^-1 (w_T x I w_T)``, the pseudo rows' own (``h_pseudo``): beyond the Jacobian, its remainder under
+    errors ``dw ~ N(0, P_ww)``, ``dk ~ N(0, P_kk)`` is the pseudo rows' remainder ``r`` (in ``T``, of variance
+    ``v_b``: ``pseudo_second_order_variance``) rotated into ``L``: ``D r``. Its cross-row covariances are not
+    formed, so each axis takes the Cauchy-Schwarz bound ``Var((D r)_a) <= (sum_b |D_ab| sqrt(v_b))^2``, which holds
+    whatever they are (at most 3 x the axis's variance, when all three rows are equal and fully correlated).
+    Over a step ``dt`` the prediction's ``omega`` moves by ``dt`` times that remainder: ``dt^2`` times the bound is
+    the process noise the second-order EKF adds to ``omega`` (``filters.relnav.process_noise``).
+    """
+    v = pseudo_second_order_variance(x, P_ww, P_kk, P_kw, nu_dot)
+    D = qt.dcm(x[..., st.QUAT])
+    s = np.sqrt(np.maximum(v, 0.0))  # (a variance: negative only by round-off of its terms)
+    a = np.abs(D)
+    return ((a[..., 0] * s[..., :1] + a[..., 1] * s[..., 1:2]) + a[..., 2] * s[..., 2:]) ** 2

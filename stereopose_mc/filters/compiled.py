@@ -123,9 +123,22 @@ def kernel_predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) 
         x_pred = km.propagate_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, True)
     else:  # the same kernels in one call
         x_pred, T = km.predict_state_batch(x, r, nd, ndd, h, setup.orbit.mu, fs.substeps, setup.dt, fs.taylor_order)
+    Q = process_noise(x, P, t, fs, setup, float(nd[0]))
     if chart != CHART_FULL:
-        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, _q_batch(fs.Q_diag, B, n), chart)
-    return x_pred, km.predict_covariance_batch(P, T, _q_batch(fs.Q_diag, B, n))
+        return x_pred, ka.predict_covariance_batch(x, x_pred, T, P, Q, chart)
+    return x_pred, km.predict_covariance_batch(P, T, Q)
+
+
+def process_noise(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup, nd: float | None = None) -> Array:
+    """``relnav.process_noise`` as ``(B, n)`` on the compiled kernel (``secondorder.rate_noise_batch``); ``nd``: the
+    leader's ``nu'`` at ``t`` when the caller has it."""
+    B, n = x.shape
+    if not fs.second_order:
+        return _q_batch(fs.Q_diag, B, n)
+    if nd is None:
+        nd = float(_leader(setup.orbit, float(t))[1][0])
+    x, P = _writable(x), _writable(P)
+    return kso.rate_noise_batch(x, P, relnav.omega_rows(x, P).start, nd, float(setup.dt), fs.Q_diag)
 
 
 def _propagator(t: float, fs: FilterSetup, setup: Setup):

@@ -68,7 +68,8 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     Phi = kf.transition_matrix(F, setup.dt, fs.transition, fs.taylor_order)
     x_pred = relnav.renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
     Phi_e = ch.error_map(x_pred) @ Phi @ ch.chart_jacobian(x)
-    P_pred = Phi_e @ P @ np.swapaxes(Phi_e, -1, -2) + error_process_noise(x_pred, fs.Q_diag, ch)
+    Q = relnav.process_noise(x, P, t, fs, setup)
+    P_pred = Phi_e @ P @ np.swapaxes(Phi_e, -1, -2) + error_process_noise(x_pred, Q, ch)
     return x_pred, kf.symmetrize(P_pred)
 
 

@@ -26,7 +26,7 @@ from ..core import camera, dynamics, jacobians, state as st
 from ..core import errorstate as es
 from ..core import kalman as kf
 from ..core import layout as lay
-from ..core.inertia import h_pseudo, pseudo_second_order_variance
+from ..core.inertia import h_pseudo, pseudo_second_order_variance, rate_second_order_variance
 from ..core.orbit import leader_kinematics
 from . import gating
 
@@ -47,7 +47,22 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
     F = jacobians.F(x, lk.r, lk.nu_dot, lk.nu_ddot, setup.orbit.mu)
     Phi = kf.transition_matrix(F, setup.dt, fs.transition, fs.taylor_order)
     x_pred = renormalize(dynamics.propagate(x, t, setup.dt, setup.orbit, fs.substeps))
-    return x_pred, kf.predict_covariance(P, Phi, fs.Q_diag)
+    return x_pred, kf.predict_covariance(P, Phi, process_noise(x, P, t, fs, setup))
+
+
+def process_noise(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> Array:
+    """The diagonal of the prediction's ``Q`` from the posterior ``(x, P)`` at ``t``: ``fs.Q_diag (n,)``, and with
+    ``fs.second_order`` ``(b, n)``: ``omega``'s entries add ``dt^2`` times the variance the Euler term's linearization
+    leaves out (``core.inertia.rate_second_order_variance``; ``P`` the full state's or an error state's, as
+    ``pseudo_linearization_variance``)."""
+    if not fs.second_order:
+        return fs.Q_diag
+    w = omega_rows(x, P)
+    nu_dot = leader_kinematics(setup.orbit, t).nu_dot
+    Q = np.tile(fs.Q_diag, (x.shape[0], 1))
+    Q[:, st.OMEGA] += setup.dt**2 * rate_second_order_variance(x, P[..., w, w], P[..., -2:, -2:], P[..., -2:, w],
+                                                                nu_dot)  # fmt: skip
+    return Q
 
 
 def channel_variances(fs: FilterSetup, disparity: bool) -> Array:

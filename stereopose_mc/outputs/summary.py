@@ -100,7 +100,8 @@ def remedies(s: FilterSummary, filter_config: dict | None) -> list[str]:
                    "for a whole window): the measurement noise or the process noise is too small for the actual "
                    "errors, or the gate too tight; try a larger `gating.probability`, `process_noise`, or check "
                    "`measurements`; docs/filters.md.")  # fmt: skip
-    elif cfg.get("type") == "ekf" and cfg.get("first_update", "ekf") != "iterated":
+    elif cfg.get("type") in ("ekf", "mekf") and cfg.get("first_update", "ekf") != "iterated" \
+            and not cfg.get("iterated"):
         out.append(f"{s.label} loses {s.lost} of {s.trials} trials{when}, mostly '{top}': from a wide prior its "
                    "single-step first update linearizes far from the truth and it does not recover. Try "
                    "`first_update: iterated` on this filter (its first update iterated as the IEKF's) or "

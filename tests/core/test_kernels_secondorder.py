@@ -1,5 +1,6 @@
-"""The compiled second-order R terms (core/kernels/secondorder.py) equal their numpy twins (core.camera's
-flow_second_order_variance, core.inertia's pseudo_second_order_variance, as filters.relnav applies them)."""
+"""The compiled second-order R and Q terms (core/kernels/secondorder.py) equal their numpy twins (core.camera's
+flow_second_order_variance, core.inertia's pseudo_second_order_variance and rate_second_order_variance, as
+filters.relnav applies them)."""
 
 import dataclasses
 
@@ -68,6 +69,33 @@ def test_compiled_pseudo_variance_equals_numpy(setup_b, N, ne_shift):
     np.testing.assert_array_equal(compiled.pseudo_linearization_variance(x[3:4], P[3:4], setup_b, t)[0], got[3])
 
 
+@pytest.mark.parametrize("N", [1, 5, 24])
+@pytest.mark.parametrize("ne_shift", [0, 1])
+def test_compiled_process_noise_equals_numpy(setup_b, N, ne_shift):
+    """The prediction's Q with the rate's second-order term (``relnav.process_noise``), full state and error state."""
+    x, P = _case(40, N, ne_shift)
+    t = 17.0
+    fs = dataclasses.replace(_filter(setup_b), Q_diag=RNG.uniform(1e-12, 1e-8, x.shape[1]))
+    ref = relnav.process_noise(x, P, t, fs, setup_b)
+    got = compiled.process_noise(x, P, t, fs, setup_b)
+    assert got.shape == ref.shape == x.shape
+    added = ref - fs.Q_diag
+    assert (added[:, st.OMEGA] > 0).all() and not added[:, :6].any() and not added[:, 9:].any()
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=0.0)
+    np.testing.assert_array_equal(compiled.process_noise(x[3:4], P[3:4], t, fs, setup_b)[0], got[3])
+    # first order: Q itself, per trial
+    plain = dataclasses.replace(fs, second_order=False)
+    np.testing.assert_array_equal(compiled.process_noise(x, P, t, plain, setup_b), np.tile(fs.Q_diag, (40, 1)))
+    np.testing.assert_array_equal(relnav.process_noise(x, P, t, plain, setup_b), fs.Q_diag)
+
+
+def _filter(setup):
+    """Case B's first filter setup."""
+    from stereopose_mc.config.resolve import filter_setup_of
+
+    return filter_setup_of(load_scenario(ROOT / "configs" / "caseB.yaml").filters[0], setup)
+
+
 def test_compiled_second_order_propagates_nan_like_numpy(setup_b):
     x, P = _case(3, 5, 1)
     x[1, 0] = np.nan
@@ -78,3 +106,9 @@ def test_compiled_second_order_propagates_nan_like_numpy(setup_b):
         got = getattr(compiled, f.__name__)(x, P, setup_b, *args)
         assert np.array_equal(np.isnan(got), np.isnan(ref))
         np.testing.assert_allclose(got[0], ref[0], rtol=1e-12)
+    fs = _filter(setup_b)
+    with np.errstate(all="ignore"):
+        ref = relnav.process_noise(x, P, 5.0, fs, setup_b)
+    got = compiled.process_noise(x, P, 5.0, fs, setup_b)
+    assert np.isnan(ref[2, st.OMEGA]).all() and np.array_equal(np.isnan(got), np.isnan(ref))  # (rho: not read)
+    np.testing.assert_allclose(got[0], ref[0], rtol=1e-12)

@@ -74,10 +74,15 @@ def test_case_b_trial_758_is_flagged_inconsistent_only_where_its_error_stays_lar
     assert np.abs(aligned.errors[0, -10:, 4:6]).max() < 0.05  # ... and a small final error
 
 
-def test_ekf_iterated_first_update_equals_the_iekf_at_the_first_step_only():
+@pytest.mark.parametrize(("iterated", "plain"), [({"type": "iekf"}, {"type": "ekf"}),
+                                                ({"type": "mekf", "iterated": True}, {"type": "mekf"})])  # fmt: skip
+def test_iterated_first_update_equals_the_iterated_filter_at_the_first_step_only(iterated, plain):
+    """``first_update: iterated`` of the EKF (the MEKF): its first update is the IEKF's (the iterated MEKF's), the
+    later ones one step each, and not the plain filter's."""
     scn = load_scenario_text(yaml.safe_dump(scenario_dict(
         "caseB", time={"dt_s": 1.0, "duration_s": 4.0, "error_window_start_s": 1.0},
-        filters=[{"type": "iekf"}, {"type": "ekf", "first_update": "iterated"}, {"type": "ekf", "name": "plain"}])))  # fmt: skip
+        filters=[{**iterated, "name": "it"}, {**plain, "first_update": "iterated", "name": "first"},
+                 {**plain, "name": "plain"}])))  # fmt: skip
     setup = setup_of(scn)
     truth = simulate_truth(setup)
     exact = meas.noise_free(setup, truth)

@@ -44,6 +44,8 @@ def test_counts_rates_kinds_and_remedies():
     assert len(r) == 1 and "`first_update: iterated`" in r[0] and "`initial_estimate: measurements`" in r[0]
     assert "median lost step 3" in r[0]
     assert sm.remedies(s, {"type": "ekf", "first_update": "iterated"})[0].count("first_update") == 0
+    assert "`first_update: iterated`" in sm.remedies(s, {"type": "mekf"})[0]  # the MEKF has the option too
+    assert sm.remedies(s, {"type": "mekf", "iterated": True})[0].count("first_update") == 0  # already iterated
     blind = sm.summarize(trials_frame(lost, incons, ["filter lost: no feature measured at any of 10 steps"] * n, ir),
                          ["iekf"], {})[0]  # fmt: skip
     assert "measured no feature" in sm.remedies(blind, {"type": "ekf"})[0]

@@ -1,7 +1,8 @@
 """Compiled (Numba) twins of the second-order measurement noise: the variance a row's linearization leaves out.
 
 - ``flow_variance_batch``: the image-velocity rows' (``core.camera.flow_second_order_variance``);
-- ``pseudo_variance_batch``: the inertia pseudo rows' (``core.inertia.pseudo_second_order_variance``).
+- ``pseudo_variance_batch``: the inertia pseudo rows' (``core.inertia.pseudo_second_order_variance``);
+- ``rate_noise_batch``: the prediction's ``Q`` with the rate dynamics' (``core.inertia.rate_second_order_variance``).
 
 Both read the blocks they need straight from the filter's covariance ``P (B, ne, ne)`` (the full state's or an
 error state's: ``omega`` at offset ``w0``, the points from ``p0``, ``k`` last; ``filters.relnav``'s
@@ -191,4 +192,32 @@ def pseudo_variance_batch(x, P, w0, nd):
     C_kw, A = np.empty((K_SIZE, VEC)), np.empty((K_SIZE, K_SIZE))
     for b in range(B):
         _pseudo_variance(x[b], P[b], w0, nd, out[b], D, S, T, C_kw, A)
+    return out
+
+
+@njit(**_JIT)
+def _nonneg(v):
+    """``v``, or 0 where round-off of its terms made it negative; NaN stays NaN (``np.maximum(v, 0)``)."""
+    return 0.0 if v < 0.0 else v
+
+
+@njit(**_JIT)
+def rate_noise_batch(x, P, w0, nd, dt, Q):
+    """``(B, n)``: ``Q (n,)`` with ``dt^2`` times ``core.inertia.rate_second_order_variance`` added to ``omega``'s
+    entries, per trial: the pseudo rows' remainder variances ``v_b`` (``_pseudo_variance``, ``P``'s blocks as in
+    ``pseudo_variance_batch``) and ``(sum_b |D_ab| sqrt(v_b))^2`` per axis ``a`` of ``L``."""
+    B, n = x.shape
+    out = np.empty((B, n))
+    v = np.empty(PSEUDO_ROWS)
+    D, S, T = np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC))
+    C_kw, A = np.empty((K_SIZE, VEC)), np.empty((K_SIZE, K_SIZE))
+    dt2 = dt * dt
+    for b in range(B):
+        for i in range(n):
+            out[b, i] = Q[i]
+        _pseudo_variance(x[b], P[b], w0, nd, v, D, S, T, C_kw, A)  # (D = D(q) of x[b] on return)
+        s0, s1, s2 = math.sqrt(_nonneg(v[0])), math.sqrt(_nonneg(v[1])), math.sqrt(_nonneg(v[2]))
+        for a in range(VEC):
+            r = (abs(D[a, 0]) * s0 + abs(D[a, 1]) * s1) + abs(D[a, 2]) * s2
+            out[b, OMEGA + a] += dt2 * (r * r)
     return out
