@@ -8,8 +8,9 @@ Starting from configs/mission-realistic.yaml, the script builds an *ideal* varia
 thesis's sensor and truth: normalized camera with 1e-5 noise, no occlusion, no tracker
 faults, Keplerian torque-free truth; the same box target, sampled features, seed and
 gated IEKF), then switches the effects on one at a time, then all together, and runs
-each with ``spmc run``'s engine into ``runs/realism/<variant>``. Every number in the doc
-comes from those runs.
+each with ``spmc run``'s engine into ``runs/realism/<variant>``; then the dispersed mesh
+example (configs/mission-mesh-dispersed.yaml) one filter at a time, with one effect or
+prior changed (``mesh-*``). Every number in the doc comes from those runs.
 """
 
 from __future__ import annotations
@@ -80,6 +81,42 @@ def first_order(d: dict) -> dict:
     return d
 
 
+MESH_CONFIG = ROOT / "configs" / "mission-mesh-dispersed.yaml"
+MESH_TRIALS = 100  # the issue's targets are counted on 100 trials
+
+
+def mesh_variants(mesh: dict) -> list[tuple[str, str, dict]]:
+    """configs/mission-mesh-dispersed.yaml one filter at a time, and the IEKF with one effect or prior changed."""
+    base = copy.deepcopy(mesh)
+    shape = base["target"]["shape"]
+    shape["file"] = str((MESH_CONFIG.parent / shape["file"]).resolve())  # (the variants are written elsewhere)
+    iekf, mekf = base["filters"]
+
+    def one(f: dict, **top) -> dict:
+        d = copy.deepcopy(base)
+        d["filters"] = [copy.deepcopy(f)]
+        for key, upd in top.items():
+            d[key] = {**d.get(key, {}), **upd}
+        return d
+
+    return [
+        ("mesh-iekf", "the scenario's IEKF, as configured", one(iekf)),
+        ("mesh-iekf-no-occlusion", "the IEKF, every feature in view at every step (`occlusion: false`)",
+         one(iekf, measurements={"occlusion": False})),
+        ("mesh-iekf-no-outliers", "the IEKF, a tracker without mismatches", one(iekf, measurements={"outliers": None})),
+        ("mesh-iekf-rate-prior-0.1", "the IEKF, the rate known to 0.1 deg/s per axis at the start (P0 and the "
+         "initial error; the scenario: 1 deg/s)", one(iekf, initial_covariance={"omega_deg2ps2": 0.01})),
+        ("mesh-iekf-points-prior-0.3", "the IEKF, the feature points known to 0.32 m per axis at the start (the "
+         "scenario: 1 m)", one(iekf, initial_covariance={"feature_points_m2": 0.1})),
+        ("mesh-iekf-measurement-start", "the IEKF started from the first stereo frame (`initial_estimate: "
+         "measurements`)", one(iekf, initial_estimate={"method": "measurements"})),
+        ("mesh-mekf", "the scenario's MEKF, as configured (plain updates)", one(mekf)),
+        ("mesh-mekf-first-iterated", "the MEKF with `first_update: iterated`", one({**mekf, "first_update": "iterated"})),
+        ("mesh-mekf-iterated", "the MEKF with `iterated: true` (every update iterated, attitude chart)",
+         one({**mekf, "iterated": True})),
+    ]
+
+
 def variants(real: dict) -> list[tuple[str, str, dict]]:
     """``(name, what, scenario dict)`` in the doc's order."""
     base = ideal(real)
@@ -125,19 +162,23 @@ def variants(real: dict) -> list[tuple[str, str, dict]]:
     return out
 
 
-def run_all(trials: int, jobs: int, kernels: str = "compiled") -> float:
+def run_all(trials: int, jobs: int, kernels: str = "compiled", mesh_trials: int = MESH_TRIALS) -> float:
     t0 = time.perf_counter()
     RUNS.mkdir(parents=True, exist_ok=True)
     real = yaml.safe_load(CONFIG.read_text())
-    for name, _, d in variants(real):
+    mesh = yaml.safe_load(MESH_CONFIG.read_text())
+    for name, _, d in variants(real) + mesh_variants(mesh):
+        if name.startswith("mesh-"):
+            d = {**d, "trials": mesh_trials}
         path = RUNS / f"{name}.yaml"
         path.write_text(yaml.safe_dump(d, sort_keys=False))
         scn = load_scenario(path)
         t1 = time.perf_counter()
-        opts = engine.RunOptions(trials=trials, jobs=jobs, kernels=kernels, overwrite=True, timeseries="none",
+        opts = engine.RunOptions(trials=mesh_trials if name.startswith("mesh-") else trials, jobs=jobs,
+                                 kernels=kernels, overwrite=True, timeseries="none",
                                  command=["docs/make_realism.py", name])  # fmt: skip
         engine.run(scn, RUNS / name, opts)
-        print(f"{name}: {trials} trials in {time.perf_counter() - t1:.1f} s", flush=True)
+        print(f"{name}: {opts.trials} trials in {time.perf_counter() - t1:.1f} s", flush=True)
     return time.perf_counter() - t0
 
 
@@ -155,7 +196,8 @@ def summary(name: str) -> dict:
         row[c] = float(t[c].mean()) / steps if c in t else 0.0
     row["features"] = float(np.mean(_visible(name)))
     ok = ~t["diverged"].to_numpy(bool)
-    row["nis_ratio"] = float(np.median(t["nis_mean"].to_numpy()[ok] / _mean_dof(name))) if ok.any() else np.nan
+    # each trial's own time average of NIS / m (its measurement dimension at each step: features seen, faults)
+    row["nis_ratio"] = float(np.median(t["nis_ratio_mean"].to_numpy()[ok])) if ok.any() else np.nan
     ci = binomtest(row["lost"], len(t)).proportion_ci(0.95, method="wilson")
     row["lost_ci"] = (ci.low, ci.high)
     row["inconsistent"] = int(t["inconsistent"].sum())
@@ -180,11 +222,6 @@ def consistency_table(rows: list[dict]) -> str:
                      f"| {r['inconsistent']} | {fmt(r['nees_gauge'])} | "
                      + " | ".join(fmt(r[f"nees_{b}"]) for b in BLOCKS) + f" | {fmt(r['nis_ratio'])} |")  # fmt: skip
     return "\n".join(lines)
-
-
-def _mean_dof(name: str) -> float:
-    """The mean measurement dimension per step without faults: 8 per feature seen + 3 pseudo rows."""
-    return float(np.mean(_visible(name)[1:])) * 8 + 3
 
 
 def _visible(name: str) -> np.ndarray:
@@ -285,7 +322,27 @@ def reading(rows: list[dict], trials: int) -> str:
     return "\n".join(out)
 
 
-def build_doc(rows: list[dict], what: dict[str, str], wall: float | None, trials: int) -> str:
+MESH_TARGETS = "lost <= 5 %, >= 90 % not flagged inconsistent, median gauge NEES/dof <= 2"
+
+
+def mesh_reading(rows: list[dict]) -> str:
+    """The mesh section's statements, each from its rows."""
+    by = {r["variant"]: r for r in rows}
+
+    def says(name: str) -> str:
+        r = by[name]
+        ok = (r["lost"] <= 0.05 * r["trials"] and r["inconsistent"] <= 0.10 * r["trials"] and r["nees_gauge"] <= 2
+              and r["p50_e_theta"] <= 1.0 and r["p90_e_theta"] <= 3.0)  # fmt: skip
+        return (f"{r['lost']} lost, {r['inconsistent']} inconsistent of {r['trials']}, gauge NEES/dof "
+                f"{fmt(r['nees_gauge'])}, theta median {fmt(r['p50_e_theta'])} and p90 {fmt(r['p90_e_theta'])} deg "
+                f"({'meets' if ok else 'misses'} the "
+                "targets)")
+
+    return "\n".join(f"- {name}: {says(name)}." for name in by)
+
+
+def build_doc(rows: list[dict], what: dict[str, str], wall: float | None, trials: int,
+              mesh_rows: list[dict] | None = None, mesh_what: dict[str, str] | None = None) -> str:  # fmt: skip
     real = yaml.safe_load(CONFIG.read_text())
     f_px = (real["camera"]["resolution_px"][0] / 2) / np.tan(np.radians(real["camera"]["fov_deg"] / 2))
     variant_lines = "\n".join(f"- **{n}**: {w}." for n, w in what.items())
@@ -380,6 +437,52 @@ Tracker faults and gating (means per trial and step):
 ## Reading the numbers
 
 {reading(rows, trials)}
+{mesh_section(mesh_rows, mesh_what) if mesh_rows else ""}"""
+
+
+def mesh_section(rows: list[dict], what: dict[str, str]) -> str:
+    variant_lines = "\n".join(f"- **{n}**: {w}." for n, w in what.items())
+    m = yaml.safe_load(MESH_CONFIG.read_text())
+    cam, meas, p0 = m["camera"], m["measurements"], m["initial_covariance"]
+    f_px = (cam["resolution_px"][0] / 2) / np.tan(np.radians(cam["fov_deg"] / 2))
+    rng = m["truth_initial_state"]["rho_m"][1]
+    depth = rng**2 * meas["image_sigma_px"] * np.sqrt(2) / (f_px * cam["baseline_m"])  # from u_R - u_L
+    mag = m["dispersions"]["truth_initial_state.omega_degps"]["magnitude"]
+    return f"""
+## The dispersed mesh target (configs/mission-mesh-dispersed.yaml)
+
+The second realistic example: a box mesh with {m["target"]["feature_points"]["sample_on_surface"]} surface
+features tumbling at {mag["low"]:g}-{mag["high"]:g} deg/s about a random axis, {cam["resolution_px"][0]} px /
+{cam["fov_deg"]:g} deg cameras on a {cam["baseline_m"]:g} m baseline ({meas["image_sigma_px"]:g} px,
+{meas["flow_sigma_pxps"]:g} px/s), occlusion, {100 * meas["outliers"]["probability"]:g} % mismatched features,
+gated filters. Its rate is known to the filters to {np.sqrt(p0["omega_deg2ps2"]):g} deg/s per axis and its
+feature points to {np.sqrt(p0["feature_points_m2"]):g} m per axis at the start (the initial covariance, from
+which the initial errors are drawn). The targets ({MESH_TARGETS},
+attitude error median <= 1 deg and p90 <= 3 deg) on {rows[0]["trials"]} trials, one filter per run,
+the same draws in every row:
+
+{variant_lines}
+
+{consistency_table(rows)}
+
+{table(rows, what, "p90")}
+
+(90th percentiles of the errors, trials not lost.)
+
+{mesh_reading(rows)}
+
+What the rows say: the two priors are what the filters cannot absorb. Each image velocity
+multiplies the rate by the point's position, and on this rig a point's depth is known
+only to about {depth:.2g} m per frame (`sqrt(2) y^2 sigma / (f b)` at {rng:g} m: the short baseline), so the first
+steps see a product of two uncertain blocks whose posterior is far from Gaussian; the
+filters' Gaussian approximation there is overconfident in the rate and the points, and
+the later steps build on it. A tighter prior on either block, or all features in view
+(no feature re-entering with its prior-level uncertainty), brings the IEKF near or within
+the targets; the tracker's mismatches do not matter. The start from the first stereo
+frame does not help on this rig: the frame gives the rate from the points' depths,
+which it does not have (docs/filters.md, Initial estimate). The plain MEKF loses most
+trials from its first, single-step update; iterating that update (or every update)
+keeps most of them.
 """
 
 
@@ -388,13 +491,17 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--trials", type=int, default=TRIALS)
     ap.add_argument("--jobs", type=int, default=available_cores(), help="default: the cores available")
     ap.add_argument("--kernels", choices=["compiled", "numpy"], default="compiled")
+    ap.add_argument("--mesh-trials", type=int, default=MESH_TRIALS)
     ap.add_argument("--skip-runs", action="store_true")
     a = ap.parse_args(argv)
-    wall = None if a.skip_runs else run_all(a.trials, a.jobs, a.kernels)
+    wall = None if a.skip_runs else run_all(a.trials, a.jobs, a.kernels, a.mesh_trials)
     real = yaml.safe_load(CONFIG.read_text())
     vs = variants(real)
     rows = [summary(n) for n, _, _ in vs]
-    DOC.write_text(build_doc(rows, {n: w for n, w, _ in vs}, wall, rows[0]["trials"]), encoding="utf-8")
+    ms = mesh_variants(yaml.safe_load(MESH_CONFIG.read_text()))
+    mesh_rows = [summary(n) for n, _, _ in ms]
+    DOC.write_text(build_doc(rows, {n: w for n, w, _ in vs}, wall, rows[0]["trials"], mesh_rows,
+                             {n: w for n, w, _ in ms}), encoding="utf-8")  # fmt: skip
     print(f"wrote {DOC}")
 
 

@@ -9,7 +9,8 @@ From the first frame (``t = 0``) of each trial (``core/initialization.py``):
   ``c + g`` with ``g ~ N(0, sigma_c^2 I)`` (``centre_of_mass_sigma_m``): the common-mode
   term;
 - ``rho_dot``, ``omega`` from the weighted rigid-body fit of the points' velocities
-  (``rho_dot = v_c``, the centroid's velocity);
+  (``rho_dot = v_c``, the centroid's velocity), weighted by the residuals' covariance with the
+  lever arms' triangulation errors (``core.initialization.rigid_fit``);
 - ``q``, ``k`` from their priors: the thesis's draw ``N(truth, P0)`` on those blocks (the
   same draw as ``truth_plus_noise``);
 - ``P_i = D(q)^T (rho_i - c)``; a feature not visible at ``t = 0`` keeps the prior draw.
@@ -51,7 +52,7 @@ def measurement_start(setup: Setup, fs: FilterSetup, y0: Array, visible0: Array,
     R8 = channel_variances(fs, False)[:8]
     rho_i, rho_dot_i = ini.triangulate(y0[:, vis], setup.baseline, setup.focal)
     C = ini.point_covariance(rho_i, rho_dot_i, setup.baseline, R8, setup.focal)
-    c, v_c, w, cov_fit = ini.rigid_fit(rho_i, rho_dot_i, C[..., 3:, 3:])
+    c, v_c, w, cov_fit = ini.rigid_fit(rho_i, rho_dot_i, C)
     q = qt.normalize(x_draw[:, st.QUAT])
     D, dD = dcm_derivative(q)
     r = rho_i - c[:, None]
