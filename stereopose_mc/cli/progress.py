@@ -23,6 +23,7 @@ class _Plain:
         self.last = -1e9
         self.start_done: int | None = None
         self.last_done = -1
+        self.last_div: dict[str, int] | None = None
 
     def __call__(self, done: int, total: int, diverged: dict[str, int]) -> None:
         now = time.perf_counter()
@@ -31,9 +32,11 @@ class _Plain:
             self.start_done = done
         if not first and done < total and now - self.last < self.every_s:
             return
-        if done == total and self.last_done == total:
+        # every trial-step can be counted before the last chunks have returned their lost counts: at 100 % a line
+        # is printed again when those change, so the last line has every chunk's
+        if done == total and self.last_done == total and diverged == self.last_div:
             return
-        self.last_done = done
+        self.last_done, self.last_div = done, dict(diverged)
         self.last = now
         el = now - self.t0
         rate = (done - self.start_done) / el if el > 0 else 0.0

@@ -73,3 +73,20 @@ def test_the_ticker_polls_from_its_thread():
     t = progress.Ticker(lambda *a: seen.set(), 0, 1, 1, {}, every_s=0.01)
     with t:
         assert seen.wait(5)
+
+
+def test_the_plain_progress_line_at_100_percent_is_printed_again_when_the_lost_counts_arrive(capsys):
+    """All trial-steps are counted before the last chunks return their lost counts: the 100 % line is repeated with
+    the complete counts (once), so the last line a log shows is the run's (mission-debris: 230 then 465 lost)."""
+    from stereopose_mc.cli.progress import _Plain
+
+    line = _Plain("debris", every_s=0.0)
+    line(250, 500, {"ekf": 100})
+    line(500, 500, {"ekf": 230})
+    line(500, 500, {"ekf": 230})
+    line(500, 500, {"ekf": 465})
+    line(500, 500, {"ekf": 465})
+    out = capsys.readouterr().err.strip().splitlines()
+    assert len(out) == 3
+    assert out[1].startswith("debris: 500/500 trials (100%)") and out[1].endswith("lost ekf 230")
+    assert out[2].endswith("lost ekf 465")
