@@ -714,7 +714,7 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
                     ts = _timeseries_rows(co)
                     path = None if ts is None else chunk_dir / _chunk_name("timeseries", co.trials)
                     ts_merge.add(int(co.trials[0]), ts, path)
-                ticker.chunk_done(co.trials.size, co.diverged_by)
+                ticker.chunk_done(co.trials.size, co.diverged_by, int(co.trials[0]))
         v = integrity.verify_chunks(chunk_dir, spec)
         integrity.check_complete(v, spec)
         if ts_merge is not None and ts_merge.keys != [c["first"] for c in v.chunks]:

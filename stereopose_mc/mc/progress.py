@@ -1,8 +1,10 @@
 """Progress of a run between chunk ends: chunks count trial-steps, the driver turns them into trials.
 
-A chunk's ``tick(n)`` (``mc.trial.run_filter``: ``B`` per filter step) adds to its own entry of a
-mapping (:class:`StepCounter`); a thread of the driver (:class:`Ticker`) polls the sum and calls
-the run's ``progress(done, total, diverged)`` with whole trials. Counting changes no result.
+A chunk's ``tick(n, label, lost)`` (``mc.trial.run_filter``: ``B`` per filter step, with the trials
+that filter lost since its last call) adds to its own entries of a mapping (:class:`StepCounter`);
+a thread of the driver (:class:`Ticker`) polls the sums and calls the run's
+``progress(done, total, diverged)`` with whole trials and the lost trials of the finished chunks and of
+the chunks in flight. Counting changes no result.
 """
 
 from __future__ import annotations
@@ -28,18 +30,39 @@ class StepCounter:
         self.steps = {} if steps is None else steps
 
     def total(self) -> int:
-        return int(sum(self.steps.values()))
+        """Trial-steps counted (the entries ``chunk key -> steps``; ``list`` copies the mapping at once, so a chunk
+        adding its first entry meanwhile cannot break the sum)."""
+        return int(sum(v for k, v in list(self.steps.items()) if not isinstance(k, tuple)))
+
+    def lost(self, finished: set[int]) -> dict[str, int]:
+        """Trials lost so far per filter by the chunks in flight (the entries ``(chunk key, filter) -> lost``), the
+        chunks ``finished`` left out (their own counts are the driver's)."""
+        out: dict[str, int] = {}
+        for k, v in list(self.steps.items()):
+            if isinstance(k, tuple) and k[0] not in finished:
+                out[k[1]] = out.get(k[1], 0) + int(v)
+        return out
 
     class _Tick:
         def __init__(self, steps: Mapping, key: int, every_s: float):
             self.steps, self.key, self.every_s, self.n, self.sent_at = steps, key, every_s, 0, time.perf_counter()
+            self.lost: dict[str, int] = {}
+            self.sent_lost: dict[str, int] = {}
 
-        def __call__(self, n: int) -> None:
+        def __call__(self, n: int, label: str | None = None, lost: int = 0) -> None:
+            """``n`` more trial-steps done; ``lost`` more trials lost by the filter ``label`` (the chunk may run a
+            filter over its trials in several calls: a dispersed target's groups)."""
             self.n += n
+            if label is not None:
+                self.lost[label] = self.lost.get(label, 0) + lost
             if self.every_s <= 0 or time.perf_counter() - self.sent_at >= self.every_s:
                 self.flush()
 
         def flush(self) -> None:
+            for label, v in self.lost.items():  # (only what changed: each write to a proxy is a round trip)
+                if self.sent_lost.get(label) != v:
+                    self.steps[(self.key, label)] = v
+                    self.sent_lost[label] = v
             self.steps[self.key] = self.n
             self.sent_at = time.perf_counter()
 
@@ -63,6 +86,7 @@ class Ticker:
         self.progress, self.start, self.done, self.total = progress, start, start, total
         self.per_trial, self.diverged, self.every_s = max(1, per_trial), diverged, every_s
         self.steps: StepCounter | None = None
+        self.finished: set[int] = set()  # the finished chunks' keys (first trials): their lost counts are in diverged
         self._lock, self._stop = threading.Lock(), threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -79,13 +103,29 @@ class Ticker:
             return self.done
         return max(self.done, min(self.total, self.start + counted // self.per_trial))
 
+    def _diverged(self) -> dict[str, int]:
+        """Lost trials per filter: the finished chunks', and the chunks' in flight so far."""
+        out = dict(self.diverged)
+        if self.steps is not None:
+            try:
+                flight = self.steps.lost(self.finished)
+            except (OSError, EOFError):  # the Manager is gone at the end of a run
+                flight = {}
+            for f, d in flight.items():
+                out[f] = out.get(f, 0) + d
+        return out
+
     def report(self) -> None:
         if self.progress is not None:
             with self._lock:
-                self.progress(self._trials(), self.total, dict(self.diverged))
+                self.progress(self._trials(), self.total, self._diverged())
 
-    def chunk_done(self, n: int, diverged_by: dict[str, int]) -> None:
+    def chunk_done(self, n: int, diverged_by: dict[str, int], key: int | None = None) -> None:
+        """A chunk of ``n`` trials ended with ``diverged_by`` lost per filter; ``key``: its first trial (its in-flight
+        lost counts are then left out)."""
         with self._lock:
+            if key is not None:
+                self.finished.add(int(key))
             self.done += n
             for f, d in diverged_by.items():
                 self.diverged[f] = self.diverged.get(f, 0) + d

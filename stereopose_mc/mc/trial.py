@@ -208,8 +208,9 @@ def run_filter(
     (a dispersed target: ``_update``); ``kept (B, K+1, N)``
     the features the tracker delivered (None: all). Updates at ``t_k, k >= 1``; step 0
     holds the initial estimate's errors. ``kernels``: ``numpy`` (``filters.relnav``) or
-    ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n)``: told of
-    every ``n`` trial-steps done (``B`` per step; a chunk's lost trials count as done), for progress.
+    ``compiled`` (``filters.compiled``, the same step on the Numba kernels). ``tick(n, label, lost)``: told of
+    every ``n`` trial-steps done (``B`` per step; a chunk's lost trials count as done) and of the ``lost`` trials
+    this filter has lost since its last call, for progress.
     ``slots``: the state's point blocks are feature slots (``filters.slots``): at each step, after the prediction,
     slots whose track ended are freed and slots with a new track are initialized from its measurement (``visible``
     leaves those out of the update); the NEES count the occupied slots only. ``extra_var (B, K+1, N, C)``: added to
@@ -269,9 +270,11 @@ def run_filter(
     # to step (no gather into and scatter from ``x, P`` at each step); ``x, P`` receive a trial's
     # posterior when it is lost (frozen there) and the others' at the end.
     x_act, P_act = x, P
+    told = 0  # the lost trials ``tick`` has been told of
     for k in range(1, K + 1):
         if tick is not None:
-            tick(B)
+            tick(B, fs.label, B - active.size - told)  # (and the trials this filter lost since, for progress)
+            told = B - active.size
         if active.size == 0:
             if tick is not None:
                 tick(B * (K - k))

@@ -28,8 +28,10 @@ def test_a_chunk_ticks_every_trial_step_of_every_filter(scenario, kernels):
     tick = progress.StepCounter.tick_of(steps, 0)
     co = engine.compute_chunk(scn.model_dump_json(), np.arange(3), "none", kernels, tick)
     n_filters = len(scn.filters)
-    # 6 steps of 3 trials per filter, lost trials included (a lost trial's remaining steps count as done)
-    assert steps == {0: 6 * 3 * n_filters}
+    # 6 steps of 3 trials per filter, lost trials included (a lost trial's remaining steps count as done); per
+    # filter the trials it lost, as the chunk's own count
+    assert steps[0] == 6 * 3 * n_filters
+    assert {k[1]: v for k, v in steps.items() if isinstance(k, tuple)} == co.diverged_by
     ref = engine.compute_chunk(scn.model_dump_json(), np.arange(3), "none", kernels)
     assert co.trials_table.equals(ref.trials_table)  # counting changes nothing
 
@@ -90,3 +92,28 @@ def test_the_plain_progress_line_at_100_percent_is_printed_again_when_the_lost_c
     assert len(out) == 3
     assert out[1].startswith("debris: 500/500 trials (100%)") and out[1].endswith("lost ekf 230")
     assert out[2].endswith("lost ekf 465")
+
+
+def test_the_ticker_counts_the_trials_lost_by_chunks_in_flight_once():
+    """Lost trials show as the chunks lose them, not only when a chunk ends; a finished chunk's own count replaces
+    its in-flight one (never both), through a plain dict (threads) and a Manager's proxy (processes)."""
+    calls: list[tuple[int, int, dict]] = []
+    t = progress.Ticker(lambda done, total, div: calls.append((done, total, div)), start=0, total=100, per_trial=10,
+                       diverged={}, every_s=3600.0)
+    with Manager() as m:
+        for steps in ({}, m.dict()):
+            t.finished.clear()
+            c = t.counter(steps)
+            tick_a, tick_b = (progress.StepCounter.tick_of(c.steps, k) for k in (0, 50))
+            tick_a(5, "ekf", 2)
+            tick_a(5, "ekf", 1)  # (increments: a dispersed chunk runs a filter in several calls)
+            tick_a(5, "iekf", 0)
+            tick_b(5, "ekf", 1)
+            t.report()
+            assert calls[-1][2] == {"ekf": 4, "iekf": 0}
+            t.chunk_done(50, {"ekf": 7, "iekf": 1}, key=0)  # chunk a ends: its own count
+            assert calls[-1][2] == {"ekf": 8, "iekf": 1}
+            tick_b(5, "ekf", 1)
+            t.report()
+            assert calls[-1][2] == {"ekf": 9, "iekf": 1}
+            t.diverged.clear()
