@@ -51,12 +51,13 @@ def predict(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> tupl
 
 
 def process_noise(x: Array, P: Array, t: float, fs: FilterSetup, setup: Setup) -> Array:
-    """The diagonal of the prediction's ``Q`` from the posterior ``(x, P)`` at ``t``: ``fs.Q_diag (n,)``, and with
-    ``fs.second_order`` ``(b, n)``: ``omega``'s entries add ``dt^2`` times the variance the Euler term's linearization
-    leaves out (``core.inertia.rate_second_order_variance``; ``P`` the full state's or an error state's, as
-    ``pseudo_linearization_variance``)."""
+    """The diagonal of the prediction's ``Q`` per trial ``(b, n)`` from the posterior ``(x, P)`` at ``t``:
+    ``fs.Q_diag`` (a read-only broadcast without ``fs.second_order``), and with it ``omega``'s entries add ``dt^2``
+    times the variance the Euler term's linearization leaves out (``core.inertia.rate_second_order_variance``;
+    ``P`` the full state's or an error state's, as ``pseudo_linearization_variance``). The same shape as the
+    compiled twin's (``filters.compiled.process_noise``)."""
     if not fs.second_order:
-        return fs.Q_diag
+        return np.broadcast_to(fs.Q_diag, (x.shape[0], fs.Q_diag.size))
     w = omega_rows(x, P)
     nu_dot = leader_kinematics(setup.orbit, t).nu_dot
     Q = np.tile(fs.Q_diag, (x.shape[0], 1))

@@ -86,7 +86,7 @@ def test_compiled_process_noise_equals_numpy(setup_b, N, ne_shift):
     # first order: Q itself, per trial
     plain = dataclasses.replace(fs, second_order=False)
     np.testing.assert_array_equal(compiled.process_noise(x, P, t, plain, setup_b), np.tile(fs.Q_diag, (40, 1)))
-    np.testing.assert_array_equal(relnav.process_noise(x, P, t, plain, setup_b), fs.Q_diag)
+    np.testing.assert_array_equal(relnav.process_noise(x, P, t, plain, setup_b), np.tile(fs.Q_diag, (40, 1)))
 
 
 def _filter(setup):
