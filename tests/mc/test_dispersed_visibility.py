@@ -28,6 +28,10 @@ def mesh_scenario(outliers: bool = True, start: str | None = None):
                    "feature_points": {"sample_on_surface": 12}}  # fmt: skip
     d["initial_covariance"] = {"rho_m2": 0.01, "rho_dot_m2ps2": 1e-4, "omega_deg2ps2": 0.01, "q": 1e-6,
                                "feature_points_m2": 1e-4, "k": 0.01}  # fmt: skip
+    # the filters pinned here (a gated IEKF and a plain gated MEKF with the default Q), not the example's tuned pair:
+    # the tight lost rule below must fire for some trials and not for others
+    d["filters"] = [{"type": "iekf", "tolerance": 0.01, "max_iterations": 10, "gating": {"probability": 0.999}},
+                    {"type": "mekf", "gating": {"probability": 0.999}}]  # fmt: skip
     d["dispersions"] = {k: v for k, v in d["dispersions"].items() if k.startswith(("sampling", "truth_initial_state.q",
                                                                                    "truth_initial_state.omega"))}
     if not outliers:
