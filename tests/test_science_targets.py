@@ -118,8 +118,8 @@ def test_mission_debris_iekf_stays_on_track_and_consistent(tmp_path):
 def test_mission_mesh_dispersed_filters_are_consistent_and_accurate(tmp_path):
     """configs/mission-mesh-dispersed.yaml, 100 trials, the IEKF and the MEKF (issue targets: lost <= 5 %, >= 90 % of
     trials not flagged inconsistent, median gauge NEES/dof <= 2, attitude error median <= 1 deg and p90 <= 3 deg;
-    today IEKF / MEKF: 3 / 2 lost, 11 / 11 inconsistent, 16 / 17 trials with gauge NEES/dof above 2, 44 / 43 with
-    an attitude error above 1 deg and 6 / 7 above 3 deg. On 1,000 trials: 14 / 10 lost, 46 / 49 inconsistent;
+    today IEKF / MEKF: 3 / 2 lost, 11 / 11 inconsistent, 18 / 18 trials with gauge NEES/dof above 2, 41 / 42 with
+    an attitude error above 1 deg and 6 / 7 above 3 deg. On 1,000 trials: 13 / 13 lost, 46 / 48 inconsistent;
     docs/realism.md has 300). The bounds as mission-realistic's: a 10 % rate flags more than 15 of 100 with
     probability 4 %, a 50 % rate gives more than 60 of 100 with probability 1.8 %. Without the filters' process
     noise the IEKF flags 52 of 300 (docs/realism.md), and the plain MEKF loses most trials."""
