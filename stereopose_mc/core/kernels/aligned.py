@@ -365,7 +365,8 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
     of ``Phi`` is the identity), ``P (B, n-1, n-1)``, ``Q (B, n)`` the process noise's diagonal.
     ``Phi S`` is ``S`` but for its first 13 rows (``Tb S[c]``); ``Phi_e = T (Phi S)`` and ``T (diag(Q)
     T^T)`` from the non-zeros of the aligned chart's ``T`` (``_apply_error_map``: ~6 scaled rows
-    per row, 2x faster than BLAS at ``n ~ 30``; the attitude chart's ``T`` by BLAS), ``P- = Phi_e
+    per row, 2x faster than BLAS at ``n ~ 30``; the attitude chart's from its non-zeros too,
+    ``attitude._apply_error_map``: a row or a sum of four per row), ``P- = Phi_e
     (Phi_e P)^T`` by BLAS, plus the noise term; its lower triangle mirrored (exactly symmetric).
     """
     B, n = x.shape
@@ -406,8 +407,8 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
         np.dot(Tb[b], Sc, PS[:COMMON])  # (Phi S)[0:13] = Tb S[c] (BLAS gemm)
         if chart == CHART_ALIGNED:  # Phi_e = T (Phi S) from the non-zeros of T
             _apply_error_map(T, N, PS, Y, Sp)
-        else:
-            np.dot(T, PS, Y)
+        else:  # Phi_e = T (Phi S) from the non-zeros of the attitude chart's T
+            _att._apply_error_map(T, PS, Y)
         Pb = outb[b]
         if ne > LARGE_N:  # Phi_e is the identity but for a few rows: products from its rows' non-zeros
             _row_nonzeros(Y, nz, cnt)
@@ -425,7 +426,7 @@ def predict_covariance_batch(x, x_pred, Tb, P, Q, chart):
         if chart == CHART_ALIGNED:  # T (diag(Q) T^T)
             _apply_error_map(T, N, QT, W, Sp, True)  # its lower triangle (added to P-'s below)
         else:
-            np.dot(T, QT, W)
+            _att._apply_error_map(T, QT, W, True)  # its lower triangle
         for r in range(ne):
             for j in range(r + 1):
                 Pb[r, j] += W[r, j]

@@ -147,6 +147,35 @@ def _error_map(xr, T):
     T[a + 2, c], T[a + 2, c + 1], T[a + 2, c + 2], T[a + 2, c + 3] = -2.0 * q3, -2.0 * q2, 2.0 * q1, 2.0 * q0
 
 
+@njit(**_JIT)
+def _apply_error_map(T, src, dst, lower=False):
+    """``dst = T src`` for ``T = errorstate.error_map`` (``_error_map``, ``n-1 x n``) from its non-zeros, ``src (n, m)``.
+
+    ``T`` is the identity on ``rho, rho_dot, omega`` (rows and columns 0-8), ``Xi = 2 [R(q^*)]_{1:4, :}`` from the
+    quaternion's columns (9-12) onto the attitude's rows (9-11), and the identity shifted by one column on the points
+    and ``k`` (row ``r``, column ``r + 1``): each row of ``dst`` is a row of ``src`` or a sum of four, ``O(n m)``
+    instead of the dense product's ``O(n^2 m)``. The rows of ``src`` are copied exactly (the dense product adds exact
+    zeros to them); an attitude row is ``(t0 s0 + t1 s1) + (t2 s2 + t3 s3)``.
+
+    ``lower``: only the lower triangle of ``dst`` (square), the columns ``c <= r``: for a symmetric product whose
+    upper triangle is mirrored after (each entry the same sum as in the full product).
+    """
+    ne, mm = dst.shape
+    for r in range(ne):
+        m = min(r + 1, mm) if lower else mm
+        if r < ATT:
+            for c in range(m):
+                dst[r, c] = src[r, c]
+        elif r < A_END:
+            t0, t1, t2, t3 = T[r, QUAT], T[r, QUAT + 1], T[r, QUAT + 2], T[r, QUAT + 3]
+            for c in range(m):
+                dst[r, c] = (t0 * src[QUAT, c] + t1 * src[QUAT + 1, c]) + (t2 * src[QUAT + 2, c]
+                                                                        + t3 * src[QUAT + 3, c])  # fmt: skip
+        else:
+            for c in range(m):
+                dst[r, c] = src[r + E_SHIFT, c]
+
+
 # --- measurement ----------------------------------------------------------------
 
 
