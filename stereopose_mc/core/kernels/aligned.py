@@ -43,7 +43,7 @@ from ..layout import (CHART_ALIGNED, COMMON, E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT
                       POINTS, QUAT, R_K, REDUCED, RHO, RHO_DOT, VEC, e_n_points)  # fmt: skip
 from .model import H_POINT, NNZ, Q_END, _dcm, _dcm_derivative, _measure_one, n_measurements, row_columns
 from .model import n_points as _n_points
-from .rows import _mirror_lower, _row_nonzeros, _sparse_rows_product
+from .rows import _copy_row, _mirror_lower, _row_nonzeros, _sparse_rows_product
 from .whiten import LARGE_N
 
 _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
@@ -324,14 +324,12 @@ def _apply_error_map(Tm, N, src, dst, Sp, lower=False):
     for r in range(ne):
         m = min(r + 1, mm) if lower else mm
         if r < DELTA:
-            for c in range(m):
-                dst[r, c] = src[r, c]
+            _copy_row(dst, r, src, r, m)
         elif r < D_END:
             for c in range(m):
                 dst[r, c] = 0.0
         else:
-            for c in range(m):
-                dst[r, c] = src[r + E_SHIFT, c]
+            _copy_row(dst, r, src, r + E_SHIFT, m)
         if r < E_OMEGA or (r >= DELTA and r < ne - K_SIZE):  # the quaternion block
             for j in range(QUAT, Q_END):
                 t = Tm[r, j]

@@ -29,6 +29,7 @@ from numba import njit
 
 from ..layout import E_OMEGA, E_POINTS, E_ROT, E_SHIFT, K_SIZE, POINTS, QUAT, VEC
 from .model import H_POINT, NNZ, PS_K, PS_QUAT, Q_END, _measure_one, n_measurements, row_columns
+from .rows import _copy_row
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -164,16 +165,14 @@ def _apply_error_map(T, src, dst, lower=False):
     for r in range(ne):
         m = min(r + 1, mm) if lower else mm
         if r < ATT:
-            for c in range(m):
-                dst[r, c] = src[r, c]
+            _copy_row(dst, r, src, r, m)
         elif r < A_END:
             t0, t1, t2, t3 = T[r, QUAT], T[r, QUAT + 1], T[r, QUAT + 2], T[r, QUAT + 3]
             for c in range(m):
                 dst[r, c] = (t0 * src[QUAT, c] + t1 * src[QUAT + 1, c]) + (t2 * src[QUAT + 2, c]
                                                                         + t3 * src[QUAT + 3, c])  # fmt: skip
         else:
-            for c in range(m):
-                dst[r, c] = src[r + E_SHIFT, c]
+            _copy_row(dst, r, src, r + E_SHIFT, m)
 
 
 # --- measurement ----------------------------------------------------------------

@@ -24,6 +24,14 @@ def _mirror_lower(A):
 
 
 @njit(**_JIT)
+def _copy_row(dst, r, src, s, m):
+    """``dst[r, :m] = src[s, :m]``, indexed in place (a row view costs an atomic increment and decrement of its
+    reference count): a chart map's identity rows (``aligned._apply_error_map``, ``attitude._apply_error_map``)."""
+    for c in range(m):
+        dst[r, c] = src[s, c]
+
+
+@njit(**_JIT)
 def _combine_rows(O, o, lo, hi, M, Cf, c, k0, k1, sign):
     """``O[o, lo:hi] += sign * sum_{k0 <= k < k1} Cf[c, k] M[k, lo:hi]``, four rows of ``M`` per pass.
 
