@@ -399,9 +399,9 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     else:
         xo, Po, nu, nis, its, conv, ok, Lo, ev = ku.iekf_update_batch(*args, iterated["tol"], iterated["max_iter"],
             ku.CONTROL[iterated["control"]], ku.STOPPING[iterated["stopping"]], 10, *judge)  # fmt: skip
-    ev, epd = (None, None) if x_true is None else (ev[:, :8], ev[:, 8])  # views: patch writes them in place
+    ev, epd, ax = (None, None, None) if x_true is None else (ev[:, :8], ev[:, 8], ev[:, 9:])  # views: patch writes
     Lo = Lo if Lo.shape[0] == b else None  # (given the truth the kernels keep P+'s square root to the NEES)
-    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo, ev, epd)
+    u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo, ev, epd, ax)
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
         bad = ~ok
@@ -431,7 +431,7 @@ class PartialUpdateError(np.linalg.LinAlgError):
 
 def patch(u, bad: Array, v):
     """``u`` with the trials ``bad`` replaced by those of update ``v`` (same fields; where ``v`` has no
-    ``P_factor``, ``nees`` or ``nees_pd``, those trials' are NaN: not given, not evaluated).
+    ``P_factor``, ``nees``, ``nees_pd`` or ``axes``, those trials' are NaN: not given, not evaluated).
 
     Written into ``u``'s own arrays where they can be (the kernels' fresh outputs, which
     nothing else holds: no copy of a ``(B, n, n)`` covariance per step with a failure);
@@ -443,7 +443,7 @@ def patch(u, bad: Array, v):
     out = {}
     for f in dataclasses.fields(u):
         a, b = getattr(u, f.name), getattr(v, f.name, None)
-        if a is None:  # an optional field that u does not have (P_factor, nees, nees_pd)
+        if a is None:  # an optional field that u does not have (P_factor, nees, nees_pd, axes)
             out[f.name] = None
             continue
         if not (isinstance(a, np.ndarray) and a.flags.writeable):

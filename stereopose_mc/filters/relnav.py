@@ -102,6 +102,9 @@ class GatedUpdate(kf.Update):
     # (the trials numpy updated, or no truth given); None: none evaluated
     nees: Array | None = field(default=None)
     nees_pd: Array | None = field(default=None)
+    # (b, 28) the posterior's per-axis errors and their variances (core.kernels.update: in the aligned chart, from the
+    # blocks of its block NEES; mc.trial.axis_errors before its units), NaN rows: not evaluated; None: none
+    axes: Array | None = field(default=None)
 
 
 def measurement_model(setup: Setup, step: StepMeasurement):

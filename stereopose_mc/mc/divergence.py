@@ -52,30 +52,42 @@ def write_chi2_table(path: Path = CHI2_TABLE, max_dof: int = 1000) -> None:
 
 
 def inconsistent_reasons(parts: dict[str, Array], rows: Array, w0: int, k: int, dof: dict[str, int | Array],
-                         sigma_ratio: float, nees_factor: float) -> list[str]:  # fmt: skip
+                         sigma_ratio: float, nees_factor: float,
+                         minima: dict[str, Array] | None = None) -> list[str]:  # fmt: skip
     """Reason per row of ``rows`` ('' when consistent enough) from NEES histories ``(B, K+1)``.
 
     ``dof[name]``: the NEES's degrees of freedom, one number, or ``(B, K+1)`` per trial and step (feature slots:
-    only the occupied slots count, ``filters.slots.nees``); a step with 0 dof does not test.
+    only the occupied slots count, ``filters.slots.nees``); a step with 0 dof does not test. ``minima[name]``: the
+    window's minimum of each row, ``np.min(parts[name][rows, w0 : k + 1], axis=1)``, where the caller has them (the
+    NEES of a step in one array: one pass for all); read for the names with one number of dof, whose tests depend
+    on the window through its minimum only (the minimum of ``NEES / dof`` is that of the NEES over ``dof``: the
+    same bits, division by a positive number being monotonic after rounding).
     """
     reasons = [""] * rows.size
     with np.errstate(invalid="ignore", divide="ignore"):
         for name, a in parts.items():
-            win = a[rows, w0 : k + 1]
             d = dof[name] if np.isscalar(dof[name]) else dof[name][rows, w0 : k + 1]
+            if np.isscalar(d):
+                low = minima[name] if minima is not None else np.min(a[rows, w0 : k + 1], axis=1)
+                if name == "nees_gauge":
+                    bad = low > nees_factor * chi2_999(d)  # every step of the window above the bound
+                elif name.startswith("nees_"):
+                    sig = np.sqrt(low / d)
+            else:
+                win = a[rows, w0 : k + 1]
+                if name == "nees_gauge":
+                    bound = nees_factor * np.vectorize(chi2_999, otypes=[float])(np.maximum(d, 1))
+                    low = np.min(win, axis=1)
+                    bad = np.all(win > bound, axis=1)
+                elif name.startswith("nees_"):
+                    sig = np.sqrt(np.min(np.where(d > 0, win / np.maximum(d, 1), np.inf), axis=1))
             if name == "nees_gauge":
-                bound = nees_factor * (chi2_999(d) if np.isscalar(d) else np.vectorize(chi2_999, otypes=[float])(
-                    np.maximum(d, 1)))  # fmt: skip
-                low = np.min(win, axis=1)
-                bad = np.all(win > bound, axis=1)
                 for j in np.flatnonzero(bad):
                     dj = d if np.isscalar(d) else int(np.min(d[j]))
                     reasons[j] = reasons[j] or (f"inconsistent: gauge-projected NEES >= {low[j]:.3g} over "
                                                 f"{k - w0 + 1} steps > {nees_factor:g} x chi2 99.9% bound "
                                                 f"{chi2_999(dj):.3g} ({dj} dof)")  # fmt: skip
             elif name.startswith("nees_"):
-                ratio = win / d if np.isscalar(d) else np.where(d > 0, win / np.maximum(d, 1), np.inf)
-                sig = np.sqrt(np.min(ratio, axis=1))
                 for j in np.flatnonzero(np.isfinite(sig) & (sig > sigma_ratio)):
                     reasons[j] = reasons[j] or (f"inconsistent: {name[5:]} error >= {sig[j]:.3g} x its claimed "
                                                 f"sigma over {k - w0 + 1} steps > {sigma_ratio:g}")  # fmt: skip

@@ -327,7 +327,7 @@ def run_filter(
         w_hist = np.concatenate([w_hist[:, 1:], w_last[:, None]], axis=1)  # push the posterior at t_k
         v_hist = np.concatenate([v_hist[:, 1:], v_last[:, None]], axis=1)
         err[active, k] = e
-        ax_err[active, k], ax_sig[active, k] = axis_errors_of(u.x, u.P, x_true_k, chart, kernels)
+        ax_err[active, k], ax_sig[active, k] = _posterior_axes(u, x_true_k, chart, kernels)
         its[active, k], conv[active, k] = u.iterations, u.converged
         if getattr(u, "features_used", None) is not None:
             dof[active, k] = u.features_used * y_feat.shape[-1] + (3 if pseudo_k else 0)
@@ -356,8 +356,10 @@ def run_filter(
                     if not bad[j]:
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
+            low = None if nees_dof is not None else np.min(nees_all[active, w0 : k + 1], axis=1)  # every NEES at once
             by_nees = inconsistent_reasons(parts, active, w0, k, nees_dof or es.nees_dof(n), bounds.sigma_ratio,
-                                           bounds.nees_factor)  # fmt: skip
+                                           bounds.nees_factor, None if low is None else
+                                           {key: low[:, j] for j, key in enumerate(keys)})  # fmt: skip
             incons = [c or d for c, d in zip(incons, by_nees)]
         for j in np.flatnonzero(inc_step[active] < 0):
             if incons[j]:  # (a flag of its own: a trial lost later, or at this step, keeps it)
@@ -489,6 +491,25 @@ def axis_errors_of(x: Array, P: Array, x_true: Array, error_state: str = "attitu
     return axis_errors(x, P, x_true, error_state)
 
 
+def _posterior_axes(u, x_true: Array, error_state: str, kernels: str) -> tuple[Array, Array]:
+    """``axis_errors_of`` the update ``u``'s posteriors: those the compiled update gave beside their NEES (``u.axes``,
+    the aligned chart's: the same numbers, unscaled), the others (the other charts, the trials numpy updated, those
+    whose NEES were not evaluated) computed here."""
+    raw = getattr(u, "axes", None)
+    todo = None if raw is None else np.flatnonzero(np.isnan(raw[:, 0]))
+    if raw is None or todo.size == raw.shape[0]:
+        return axis_errors_of(u.x, u.P, x_true, error_state, kernels)
+    n_ax = len(AXES)
+    var = raw[:, n_ax:]
+    err = raw[:, :n_ax] * _AXIS_SCALE
+    with np.errstate(invalid="ignore"):
+        sig = np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
+    if todo.size:
+        xt = x_true if x_true.ndim == 1 else x_true[todo]
+        err[todo], sig[todo] = axis_errors_of(u.x[todo], u.P[todo], xt, error_state, kernels)
+    return err, sig
+
+
 def _gated_out(gated: Array, dof: Array, channels: int, fraction: float) -> Array:
     """Per trial: at every step of the window, ``gated >= fraction`` of the features given (used + gated)."""
     used = (dof - dof % channels) // channels  # the pseudo rows (3 < channels) are the remainder
@@ -584,7 +605,8 @@ def _left_to_numpy(xa, Pa, step, rows, fs, setup, exc):
 
 
 # the compiled update's optional fields (relnav.GatedUpdate) and their shape in an update u that lacks them
-_OPTIONAL = {"P_factor": lambda u: u.P.shape, "nees": lambda u: (u.P.shape[0], 8), "nees_pd": lambda u: u.P.shape[:1]}
+_OPTIONAL = {"P_factor": lambda u: u.P.shape, "nees": lambda u: (u.P.shape[0], 8), "nees_pd": lambda u: u.P.shape[:1],
+             "axes": lambda u: (u.P.shape[0], 2 * len(AXES))}  # fmt: skip
 
 
 def _concatenate(updates: list):
@@ -596,7 +618,7 @@ def _concatenate(updates: list):
 def _merge(parts: list, b: int):
     """``(update, reasons)`` of a batch of ``b`` trials from ``(positions, update, reasons)`` of its parts.
 
-    MEKF/UKF updates carry no gate counts: the fields all parts have. ``P_factor``, ``nees`` and ``nees_pd``
+    MEKF/UKF updates carry no gate counts: the fields all parts have. ``P_factor``, ``nees``, ``nees_pd`` and ``axes``
     (given by the compiled update only) are NaN for the parts without them, None if no part has them. The
     innovations ``nu`` of parts with fewer rows are padded with NaN."""
     updates = [u for _, u, _ in parts]

@@ -457,14 +457,14 @@ def test_nees_from_a_given_square_root_equal_those_that_factorize_p(chart):
 
 @pytest.mark.parametrize("n,m", [(30, 30), (30, 29), (135, 134)])
 def test_nees_scratch_views_tile_their_buffers_without_overlap(n, m):
-    """``_nees_scratch``'s 32 arrays are views into two buffers (two allocations per call of the update kernels):
+    """``_nees_scratch``'s 33 arrays are views into two buffers (two allocations per call of the update kernels):
     each C-contiguous, shaped as ``nees_batch`` used them, none overlapping another (a value written through one
     is read back from it after every other is written), the integer and zero-started ones zero."""
     ws = kc._nees_scratch(n, m)
     ne, k = n - 1, 3 + 3 * ((n - 15) // 3)
     shapes = [(ne, n), (n, ne), (ne, ne), (ne,), (ne, n), (n, ne), (3, n), (ne, ne), (m, m), (m, m), (ne, ne), (ne,),
               (ne,), (ne,), (ne, k), (ne, k), (ne, ne), (ne, ne), (ne, ne), (ne,), (3, ne), (ne,), (ne, ne), (3, 3),
-              (3, 3), (3, 3), (4,), (4,), (6, 3), (3, ne), (6, 3), (5, n)]  # fmt: skip
+              (3, 3), (3, 3), (4,), (4,), (6, 3), (3, ne), (6, 3), (5, n), (kc.N_AXES,)]  # fmt: skip
     assert [a.shape for a in ws] == shapes
     assert all(a.flags.c_contiguous for a in ws)
     assert not ws[3].any() and not ws[13].any() and not ws[14].any() and not ws[15].any()  # e0, cnt, cols, vals

@@ -389,6 +389,46 @@ def test_the_update_evaluates_its_posteriors_nees_as_the_nees_kernel(kind, error
     np.testing.assert_array_equal(p, pd)
 
 
+@pytest.mark.parametrize("kind", ["ekf", "iekf"])
+@pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
+def test_the_update_gives_the_aligned_charts_per_axis_errors_as_the_axes_kernel(kind, error_state):
+    """In the aligned chart the compiled update returns, beside each posterior's NEES, its per-axis errors and their
+    variances, read off the blocks its block NEES form: bit for bit ``axes.axis_errors_batch`` of its own posteriors
+    (before the units). The other charts and the trials left to numpy's update are not given (NaN); there
+    ``mc.trial._posterior_axes`` computes them, so its result is ``axis_errors_of``'s on every trial."""
+    from stereopose_mc.core.kernels import axes
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc import trial
+
+    x, P, step, fs, setup = _aligned_step(kind, B=6, full=error_state == "full")
+    fs = dataclasses.replace(fs, error_state=error_state)
+    rows = np.arange(len(x))
+    failing = [2] if kind == "ekf" else []
+    P[failing] = -P[failing]
+    rng = np.random.default_rng(8)
+    xt = x + 1e-3 * rng.standard_normal(x.shape)
+    xt[:, 9:13] /= np.linalg.norm(xt[:, 9:13], axis=-1, keepdims=True)
+    u = compiled.update(x, P, step, rows, fs, setup, x_true=xt)
+    assert compiled.update(x, P, step, rows, fs, setup).axes is None  # without the truth: none
+    n_ax = len(trial.AXES)
+    assert u.axes.shape == (len(x), 2 * n_ax)
+    given = ~np.isnan(u.axes[:, 0])
+    assert given.tolist() == [error_state == "aligned" and i not in failing for i in rows]
+    assert np.isnan(u.axes[~given]).all()
+    code = axes.FULL if u.P.shape[-1] == x.shape[-1] else axes.CHARTS[error_state]
+    ref_err, ref_sig = axes.axis_errors_batch(u.x, u.P, xt, code, np.ones(n_ax))  # unscaled
+    np.testing.assert_array_equal(u.axes[given, :n_ax], ref_err[given])
+    np.testing.assert_array_equal(np.sqrt(u.axes[given, n_ax:]), ref_sig[given])
+    err, sig = trial._posterior_axes(u, xt, error_state, "compiled")
+    want_err, want_sig = trial.axis_errors_of(u.x, u.P, xt, error_state, "compiled")
+    np.testing.assert_array_equal(err, want_err)
+    np.testing.assert_array_equal(sig, want_sig)
+    if error_state == "aligned":  # the variances are those of the numpy twin (M P M^T's diagonal), to round-off
+        num_err, num_sig = trial.axis_errors(u.x[given], u.P[given], xt[given], error_state)
+        np.testing.assert_allclose(sig[given], num_sig, rtol=1e-10)
+        np.testing.assert_allclose(err[given], num_err, rtol=1e-10, atol=1e-15)
+
+
 def _check_square_root(u, given):
     """The compiled update's ``P_factor``: for the trials ``given`` a square root ``R = J U`` of ``P+`` (``U`` upper
     triangular with a positive diagonal, ``R^T R = P+`` to round-off: P's own Cholesky factor, reversed), the others
@@ -684,7 +724,7 @@ def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
     assert w.rejected is not const and (const == 0).all()
     for f in dataclasses.fields(w):
         got, want = getattr(w, f.name), getattr(v, f.name)
-        if f.name in ("P_factor", "nees", "nees_pd"):  # given by neither
+        if f.name in ("P_factor", "nees", "nees_pd", "axes"):  # given by neither
             assert got is None and want is None
             continue
         np.testing.assert_array_equal(got[bad], want, f.name)
@@ -708,3 +748,9 @@ def test_patch_writes_the_kernels_arrays_in_place_and_copies_shared_constants():
     assert np.isnan(ev[bad]).all() and np.isnan(epd[bad]).all()
     np.testing.assert_array_equal(ev[~bad], kept[~bad])
     assert (epd[~bad] == 1.0).all()
+    # and so are the per-axis errors it gave
+    ax = rng.random((B, 28))
+    kept = ax.copy()
+    w = compiled.patch(dataclasses.replace(u, axes=ax), bad, v)
+    assert w.axes is ax and np.isnan(ax[bad]).all()
+    np.testing.assert_array_equal(ax[~bad], kept[~bad])

@@ -50,6 +50,29 @@ def test_gauge_nees_must_stay_above_the_bound_for_the_whole_window():
     assert inconsistent_reasons(parts, np.array([2, 0]), 11, 20, DOF, 30.0, 10.0)[1] == r[0]
 
 
+def test_window_minima_from_the_caller_give_the_same_reasons():
+    """``minima`` (the caller's window minima of all the NEES at once, ``mc.trial.run_filter``) give the reasons the
+    function finds by itself, word for word: random NEES histories (chi-square around their dof, some far above,
+    some NaN) judged with and without them, on every row and on a subset in another order."""
+    rng = np.random.default_rng(5)
+    B, K = 40, 20
+    parts = {k: rng.chisquare(d, (B, K + 1)) for k, d in DOF.items() if k != "nees"}
+    for j, a in enumerate(parts.values()):
+        a *= np.where(rng.random((B, K + 1)) < 0.3, 10.0 ** rng.integers(1, 5, size=(B, K + 1)), 1.0)
+        a[j, 12] = np.nan  # a step not evaluated inside the window
+    parts["nees_gauge"][5:15] = 30.0 * stats.chi2.ppf(0.999, DOF["nees_gauge"])  # sustained above the bound
+    parts["nees_rho"][20:25, 8:] = 50.0 * DOF["nees_rho"]  # about 7 sigma, sustained
+    stack = np.stack(list(parts.values()), axis=-1)
+    for rows in (np.arange(B), np.array([7, 3, 30, 12, 0])):
+        low = np.min(stack[rows, 11:21], axis=1)
+        minima = {key: low[:, j] for j, key in enumerate(parts)}
+        want = inconsistent_reasons(parts, rows, 11, 20, DOF, 3.0, 10.0)
+        assert inconsistent_reasons(parts, rows, 11, 20, DOF, 3.0, 10.0, minima) == want
+        if rows.size == B:  # (the histories make some rows inconsistent, by either test, and not all)
+            assert sum(r.startswith("inconsistent: gauge") for r in want) >= 5 and not all(want)
+            assert any("error >=" in r for r in want)
+
+
 @pytest.mark.slow
 def test_case_b_trial_758_is_flagged_inconsistent_only_where_its_error_stays_large():
     """Trial 758 of case B (k2 error about 6.4 at the end with the thesis's filter, counted as converged before issue 10).

@@ -29,7 +29,7 @@ from numba import njit
 from . import writable as _writable
 from ._refs import borrow
 from .aligned import _local
-from .consistency import _attitude_rows, _block, _block_points, _estimation_error, _point_rows_sum
+from .consistency import N_AXES, _attitude_rows, _block, _block_points, _estimation_error, _point_rows_sum
 from ..layout import E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, K_SIZE, QUAT, VEC
 from .model import n_points as _n_points
 
@@ -37,7 +37,6 @@ _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 FULL, ALIGNED, ATTITUDE = 0, 1, 2
 CHARTS = {"full": FULL, "aligned": ALIGNED, "attitude": ATTITUDE}
-N_AXES = E_POINTS + K_SIZE  # rho, rho_dot, omega, attitude (the error state's first 12 rows) and k
 
 
 @njit(**_JIT)

@@ -54,6 +54,8 @@ from .model import Q_END
 from .model import n_points as _n_points
 from .rows import _dot, _dot_row, _dot_rows, _mirror_lower
 
+N_AXES = E_POINTS + K_SIZE  # the per-axis rows: rho, rho_dot, omega, attitude (the error state's first 12) and k
+
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
 KEYS = ("nees", "nees_gauge", "nees_rho", "nees_rho_dot", "nees_omega", "nees_attitude", "nees_feature_points",
@@ -328,7 +330,13 @@ def _point_rows_sum(P, N, Sp):
 
 
 @njit(**_JIT)
-def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf, given):
+def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf, given,
+         var):
+    """The 8 NEES of one aligned-chart covariance ``P`` into ``out`` (module docstring); False if ``P`` is not
+    positive definite (nothing written). ``Rc``: ``P``'s square root where ``given``, else ``_own_root``'s output
+    (``Uf`` scratch). Also leaves the attitude-chart error ``eps`` and, in ``var (N_AXES,)``, the variances of its
+    per-axis rows (the diagonals of the blocks ``M P M^T`` formed for the block NEES: ``axes.axis_errors_batch``'s
+    numbers, bit for bit), which the compiled update returns beside the NEES."""
     n = xh.shape[0]
     ne = n - 1
     # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
@@ -373,6 +381,10 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
             _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N, c0, c1)
         else:
             _block(cnt, cols, vals, lo, hi, P, Y, C, c0, c1)
+        if b != 4:  # the per-axis variances (``axes.axis_errors_batch``'s, the same blocks): all but the points'
+            at = lo if b < 4 else E_POINTS
+            for a in range(m):
+                var[at + a] = C[a, a]
         out[2 + b] = _mahalanobis(eps[lo:hi], C[:m, :m], Lb[:m, :m], u)
     return True
 
@@ -682,10 +694,10 @@ def _take(buf, at, c, a, b):
 # The scratch arrays of ``_nees_one`` (``_nees_scratch``), by name: the matrices ``ne x ne`` (Mi, Pa, Lr, C, L, Lb,
 # Y), ``ne x n`` (Tm, TP), ``n x ne`` (Sa, Pt), ``m x m`` (Uf, Rf: P's own upper factor and its root J U), the vectors
 # of ``ne`` (e0 = 0, e, eps, w, u), the NEES blocks' sparse rows (cnt, cols, vals), 3 x 3 (D, Dt, R), 4-vectors
-# (dq, tmp), 6 x 3 (v3, Wp), 3 x ne (U, Sp), 3 x n (Sm), 5 x n (W5)
+# (dq, tmp), 6 x 3 (v3, Wp), 3 x ne (U, Sp), 3 x n (Sm), 5 x n (W5), the per-axis variances (ax, N_AXES: _one's)
 NeesScratch = namedtuple("NeesScratch", ("Tm", "Sa", "Mi", "e0", "TP", "Pt", "Sm", "Pa", "Uf", "Rf", "Lr", "e", "eps",
                                          "cnt", "cols", "vals", "C", "L", "Lb", "w", "U", "u", "Y", "D", "Dt", "R",
-                                         "dq", "tmp", "v3", "Sp", "Wp", "W5"))  # fmt: skip
+                                         "dq", "tmp", "v3", "Sp", "Wp", "W5", "ax"))  # fmt: skip
 
 
 @njit(**_JIT)
@@ -696,7 +708,7 @@ def _nees_scratch(n, m):
     evaluates NEES), grouped by shape."""
     ne = n - 1
     k = VEC + VEC * _n_points(n)
-    buf = np.empty(4 * ne * n + 7 * ne * ne + 2 * m * m + 8 * n + ne * (k + 11) + 71)  # the views below, in order
+    buf = np.empty(4 * ne * n + 7 * ne * ne + 2 * m * m + 8 * n + ne * (k + 11) + 71 + N_AXES)  # the views below
     ints = np.zeros(ne + ne * k, np.int64)
     sq, at = _take(buf, 0, 7, ne, ne)  # Mi, Pa, Lr, C, L, Lb, Y
     tn, at = _take(buf, at, 2, ne, n)  # Tm, TP
@@ -710,13 +722,14 @@ def _nees_scratch(n, m):
     s3, at = _take(buf, at, 2, 3, ne)  # U, Sp
     sm, at = _take(buf, at, 1, 3, n)  # Sm
     w5, at = _take(buf, at, 1, 5, n)  # W5
+    ax, at = _take(buf, at, 1, 1, N_AXES)  # ax
     vec[0, 0, :] = 0.0
     vals[0, :, :] = 0.0
     v, q = vec[0], q4[0]
     return NeesScratch(Tm=tn[0], Sa=nt[0], Mi=sq[0], e0=v[0], TP=tn[1], Pt=nt[1], Sm=sm[0], Pa=sq[1], Uf=mm[0],
                        Rf=mm[1], Lr=sq[2], e=v[1], eps=v[2], cnt=ints[:ne], cols=ints[ne:].reshape((ne, k)),
                        vals=vals[0], C=sq[3], L=sq[4], Lb=sq[5], w=v[3], U=s3[0], u=v[4], Y=sq[6], D=d3[0], Dt=d3[1],
-                       R=d3[2], dq=q[0], tmp=q[1], v3=s6[0], Sp=s3[1], Wp=s6[1], W5=w5[0])  # fmt: skip
+                       R=d3[2], dq=q[0], tmp=q[1], v3=s6[0], Sp=s3[1], Wp=s6[1], W5=w5[0], ax=ax[0, 0])  # fmt: skip
 
 
 @njit(**_JIT)
@@ -724,7 +737,7 @@ def _nees_given(xh, P, xt, Rg, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, 
     """``_nees_one`` of a full-state ``P`` with its square root ``Rg`` given (the compiled update's posteriors), with
     the 13 scratch arrays of ``_one_full`` as arguments: 1 (the NEES written, ``P`` positive definite), 0 (the state
     or ``P`` not finite: nothing written), -1 (the square root is not given: ``_nees_one``'s other paths apply).
-    The update calls it on every posterior of the full state, not ``_nees_one`` with its 32-array scratch tuple: each
+    The update calls it on every posterior of the full state, not ``_nees_one`` with its 33-array scratch tuple: each
     array a compiled function takes costs an atomic increment and decrement of its reference count."""
     if not (_finite(xh) and _finite(xt) and _finite(P.ravel())):
         return 0
@@ -745,7 +758,7 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
     Tm, Sa, Mi, e0, TP, Pt, Sm, Pa, Uf, Rf = ws.Tm, ws.Sa, ws.Mi, ws.e0, ws.TP, ws.Pt, ws.Sm, ws.Pa, ws.Uf, ws.Rf
     Lr, e, eps, cnt, cols, vals, C, L, Lb = ws.Lr, ws.e, ws.eps, ws.cnt, ws.cols, ws.vals, ws.C, ws.L, ws.Lb
     w, U, u, Y, D, Dt, R, dq, tmp = ws.w, ws.U, ws.u, ws.Y, ws.D, ws.Dt, ws.R, ws.dq, ws.tmp
-    v3, Sp, Wp, W5 = ws.v3, ws.Sp, ws.Wp, ws.W5
+    v3, Sp, Wp, W5, ax = ws.v3, ws.Sp, ws.Wp, ws.W5, ws.ax
     n = xh.shape[0]
     ne = n - 1
     N = _n_points(n)
@@ -771,10 +784,11 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
             np.dot(Mi, P, C)
             np.dot(C, Mi.T, Pa)
             _mirror_lower(Pa)
-        _one(xh, Pa, xt, N, out, e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, L, False)
+        _one(xh, Pa, xt, N, out, e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, L, False,
+             ax)  # fmt: skip
         return False
     return _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rt, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf,
-                given)  # fmt: skip
+                given, ax)  # fmt: skip
 
 
 @njit(**_JIT)

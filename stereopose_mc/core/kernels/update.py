@@ -54,13 +54,13 @@ import math
 import numpy as np
 from numba import njit
 
-from ..layout import CHART_ALIGNED, CHART_FULL, QUAT, VEC
+from ..layout import CHART_ALIGNED, CHART_FULL, E_POINTS, K_SIZE, QUAT, VEC
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _e_n_points, _measure_aligned, virtual_rows
 from .centred import _center_cov, _centered_model_rows, _centered_virtual_rows, _sqrt_mul, _uncenter_cov
 from .cholesky import _cholesky, _cholesky_t, _cholesky_tu
-from .consistency import _nees_given, _nees_one, _nees_scratch
+from .consistency import N_AXES, _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, Q_END, _measure_one
 from .rows import _dot, _dot_row
 from .triangular import _factor, _posterior_covariance_rev, _solve
@@ -216,8 +216,11 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
 
     ``x_true``: the true states ``(B, nx)``, or ``(0, nx)``. Given, each posterior's NEES are evaluated as soon as it is
     formed, with ``P+`` and ``R+`` still in cache (``consistency._nees_one``, the per-trial body of
-    ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 9)``, the 8 NEES and
-    ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False); and ``R+`` is not returned
+    ``consistency.nees_batch(x+, P+, x_true, attitude, R+)``: the same numbers): ``nees (B, 9 + 2 N_AXES)``, the 8
+    NEES and ``pd`` (1.0 or 0.0), NaN where not evaluated (no truth given, or ``ok`` False), then in the aligned
+    chart the per-axis errors ``eps`` and their variances (``N_AXES`` each, unscaled: those of
+    ``axes.axis_errors_batch``, bit for bit, from the blocks its block NEES form; NaN in the other charts, whose
+    variances are ``P``'s own entries, and where not evaluated); and ``R+`` is not returned
     (``(0, n, n)``): the NEES were its only reader. (One array: each array a kernel
     returns costs its boxing at every call, which a single trial's step pays in full.)
     """
@@ -271,7 +274,7 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
     T = np.empty((n, n))
     D = np.empty((3, 3))
     dD = np.empty((4, 3, 3))
-    ev = np.full((B, 9), np.nan)  # the posteriors' NEES and pd (x_true given)
+    ev = np.full((B, 9 + 2 * N_AXES), np.nan)  # the posteriors' NEES, pd and per-axis errors and variances
     outs = (xo, Po, nu, nis, its, conv, ok, Ro, ev)
     # The loop works on borrowed arrays (``_refs.borrow``: no atomic reference counting in its views and calls). Their owners: the caller's arguments, ``outs`` (returned) and ``own`` (kept to the end).
     own = (Rs, hx, Hval, Hdummy, Laug, Hw, ws, g2, Hc, cc, wi, rw, A, Afin, LA, Ad, rws, z, zn, zt, d, g, xt, dx, e, T,
@@ -462,10 +465,14 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             _posterior_covariance_rev(L, LA, Po[b], Rb)  # its W = (M J)^T is P+'s square root J M^T
         if judged:
             st = -1
-            if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 32-array NeesScratch
+            if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 33-array NeesScratch
                 st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], *wf)
             if st < 0:
                 st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nws) else 0
+                if st == 1 and chart == CHART_ALIGNED:  # the per-axis errors and variances its block NEES formed
+                    for r in range(N_AXES):
+                        ev[b, 9 + r] = nws.eps[r if r < E_POINTS else n - K_SIZE + (r - E_POINTS)]
+                        ev[b, 9 + N_AXES + r] = nws.ax[r]
             ev[b, 8] = float(st)
     if judged:
         keep(nws)
