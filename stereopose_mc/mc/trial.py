@@ -356,11 +356,16 @@ def run_filter(
                     if not bad[j]:
                         bad[j] = (f"filter lost: its gate rejected >= {bounds.gated_fraction:g} of the features "
                                   f"at each of {bounds.nis_window_steps} steps")  # fmt: skip
-            low = None if nees_dof is not None else np.min(nees_all[active, w0 : k + 1], axis=1)  # every NEES at once
-            by_nees = inconsistent_reasons(parts, active, w0, k, nees_dof or es.nees_dof(n), bounds.sigma_ratio,
-                                           bounds.nees_factor, None if low is None else
-                                           {key: low[:, j] for j, key in enumerate(keys)})  # fmt: skip
-            incons = [c or d for c, d in zip(incons, by_nees)]
+            # the NEES tests for the trials not flagged yet (a trial keeps its first reason: the others' are not read)
+            todo = np.flatnonzero(inc_step[active] < 0)
+            if todo.size:
+                rows_t = active[todo]
+                low = None if nees_dof is not None else np.min(nees_all[rows_t, w0 : k + 1], axis=1)  # all NEES at once
+                by_nees = inconsistent_reasons(parts, rows_t, w0, k, nees_dof or es.nees_dof(n), bounds.sigma_ratio,
+                                               bounds.nees_factor, None if low is None else
+                                               {key: low[:, j] for j, key in enumerate(keys)})  # fmt: skip
+                for j, d in zip(todo.tolist(), by_nees):
+                    incons[j] = incons[j] or d
         for j in np.flatnonzero(inc_step[active] < 0):
             if incons[j]:  # (a flag of its own: a trial lost later, or at this step, keeps it)
                 inc_step[active[j]], inc_reasons[active[j]] = k, incons[j]
