@@ -29,8 +29,11 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def source_files(directory: Path = PACKAGE_DIR) -> list[Path]:
-    """The package's Python modules, sorted (the stamp does not depend on listing order)."""
-    return sorted(p for p in directory.glob("*.py") if p.is_file())
+    """The package's Python modules, sorted (the stamp does not depend on listing order). One ``scandir``: every
+    kernel asks for its stamp when it is decorated (135 of them at import), so a ``glob`` with a ``stat`` per entry
+    cost a fifth of the kernel modules' import."""
+    with os.scandir(directory) as it:
+        return sorted(Path(e.path) for e in it if e.name.endswith(".py") and e.is_file())
 
 
 def core_dependencies(directory: Path = PACKAGE_DIR) -> list[Path]:
