@@ -482,7 +482,7 @@ def axis_errors(x: Array, P: Array, x_true: Array, error_state: str = "attitude"
             var = np.diagonal(P, axis1=-2, axis2=-1)[..., rows]
         else:
             var = np.sum((M @ P) * M, axis=-1)  # diag(M P M^T) by one BLAS product
-        return eps * _AXIS_SCALE, np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
+        return _in_axis_units(eps, var)
 
 
 def axis_errors_of(x: Array, P: Array, x_true: Array, error_state: str = "attitude",
@@ -496,6 +496,13 @@ def axis_errors_of(x: Array, P: Array, x_true: Array, error_state: str = "attitu
     return axis_errors(x, P, x_true, error_state)
 
 
+def _in_axis_units(eps: Array, var: Array) -> tuple[Array, Array]:
+    """Per-axis errors ``eps`` and their variances ``var`` (SI) as ``(error, sigma)`` in ``AXIS_UNITS`` (a negative
+    variance: NaN sigma)."""
+    with np.errstate(invalid="ignore"):
+        return eps * _AXIS_SCALE, np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
+
+
 def _posterior_axes(u, x_true: Array, error_state: str, kernels: str) -> tuple[Array, Array]:
     """``axis_errors_of`` the update ``u``'s posteriors: those the compiled update gave beside their NEES (``u.axes``,
     the aligned chart's: the same numbers, unscaled), the others (the other charts, the trials numpy updated, those
@@ -505,10 +512,7 @@ def _posterior_axes(u, x_true: Array, error_state: str, kernels: str) -> tuple[A
     if raw is None or todo.size == raw.shape[0]:
         return axis_errors_of(u.x, u.P, x_true, error_state, kernels)
     n_ax = len(AXES)
-    var = raw[:, n_ax:]
-    err = raw[:, :n_ax] * _AXIS_SCALE
-    with np.errstate(invalid="ignore"):
-        sig = np.sqrt(np.where(var >= 0, var, np.nan)) * _AXIS_SCALE
+    err, sig = _in_axis_units(raw[:, :n_ax], raw[:, n_ax:])
     if todo.size:
         xt = x_true if x_true.ndim == 1 else x_true[todo]
         err[todo], sig[todo] = axis_errors_of(u.x[todo], u.P[todo], xt, error_state, kernels)

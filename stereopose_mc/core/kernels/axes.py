@@ -29,7 +29,7 @@ from numba import njit
 from . import writable as _writable
 from ._refs import borrow
 from .aligned import _local
-from .consistency import N_AXES, _attitude_rows, _block, _block_points, _estimation_error, _point_rows_sum
+from .consistency import N_AXES, _attitude_rows, _axis_row, _block, _block_points, _estimation_error, _point_rows_sum
 from ..layout import E_OMEGA, E_POINTS, E_RHO, E_RHO_DOT, E_ROT, K_SIZE, QUAT, VEC
 from .model import n_points as _n_points
 
@@ -110,8 +110,7 @@ def axis_errors_batch(x_hat, P, x_true, chart, scale):
                 for a in range(hi - lo):
                     var[at + a] = C[a, a]
         for r in range(N_AXES):
-            src = r if r < E_POINTS else ne - K_SIZE + (r - E_POINTS)
-            err[t, r] = eps[src] * scale[r]
+            err[t, r] = eps[_axis_row(r, ne)] * scale[r]
             v = var[r]
             sig[t, r] = math.sqrt(v) * scale[r] if v >= 0.0 else np.nan
     return err, sig

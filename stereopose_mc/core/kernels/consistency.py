@@ -63,6 +63,12 @@ KEYS = ("nees", "nees_gauge", "nees_rho", "nees_rho_dot", "nees_omega", "nees_at
 
 
 @njit(**_JIT)
+def _axis_row(r, ne):
+    """The error state's row of per-axis row ``r`` (``N_AXES``): the first 12 as they are, then ``k``, last of ``ne``."""
+    return r if r < E_POINTS else ne - K_SIZE + (r - E_POINTS)
+
+
+@njit(**_JIT)
 def _mahalanobis(e, P, L, w):
     """``e^T P^-1 e`` by Cholesky (``L``, ``w`` scratch; a small block's); NaN if ``P`` is not positive definite.
 

@@ -54,13 +54,13 @@ import math
 import numpy as np
 from numba import njit
 
-from ..layout import CHART_ALIGNED, CHART_FULL, E_POINTS, K_SIZE, QUAT, VEC
+from ..layout import CHART_ALIGNED, CHART_FULL, QUAT, VEC
 from . import attitude as _att
 from ._refs import borrow, keep
 from .aligned import _chart, _e_n_points, _measure_aligned, virtual_rows
 from .centred import _center_cov, _centered_model_rows, _centered_virtual_rows, _sqrt_mul, _uncenter_cov
 from .cholesky import _cholesky, _cholesky_t, _cholesky_tu
-from .consistency import N_AXES, _nees_given, _nees_one, _nees_scratch
+from .consistency import N_AXES, _axis_row, _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, Q_END, _measure_one
 from .rows import _dot, _dot_row
 from .triangular import _factor, _posterior_covariance_rev, _solve
@@ -471,7 +471,7 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
                 st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nws) else 0
                 if st == 1 and chart == CHART_ALIGNED:  # the per-axis errors and variances its block NEES formed
                     for r in range(N_AXES):
-                        ev[b, 9 + r] = nws.eps[r if r < E_POINTS else n - K_SIZE + (r - E_POINTS)]
+                        ev[b, 9 + r] = nws.eps[_axis_row(r, n)]
                         ev[b, 9 + N_AXES + r] = nws.ax[r]
             ev[b, 8] = float(st)
     if judged:
