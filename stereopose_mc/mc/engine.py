@@ -53,7 +53,7 @@ from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
-from . import dispersed, rows, scheduler_probe
+from . import dispersed, rows, scheduler_probe, startup
 from .progress import PROXY_EVERY_S, StepCounter, Ticker
 from .trial import Bounds, run_chunk
 
@@ -624,6 +624,12 @@ def _resume_checks(scn: Scenario, out: Path, opts: RunOptions, manifest: dict, s
 def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = None) -> RunResult:
     """Run (or resume) a Monte Carlo campaign into ``out``, holding its lock throughout."""
     t_start = time.perf_counter()
+    with startup.paused() as settle:  # the collector off until the start-up is done (mc/startup.py)
+        return _run(scn, out, opts, progress, t_start, settle)
+
+
+def _run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None, t_start: float,
+         settle: Callable[[], None]) -> RunResult:  # fmt: skip
     if opts.seed is not None and not opts.resume:
         scn = scn.model_copy(update={"seed": opts.seed})
     if opts.trials is not None and not opts.resume:
@@ -664,13 +670,14 @@ def run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None = 
                 store.atomic_write_text(out / "config.yaml",
                                         yaml.safe_dump(scn.model_dump(mode="json"), sort_keys=False))  # fmt: skip
             store.write_json(out / "manifest.json", manifest)
-        return _run_locked(scn, out, opts, progress, manifest, run_spec(scn, shash, opts.timeseries, code), t_start)
+        return _run_locked(scn, out, opts, progress, manifest, run_spec(scn, shash, opts.timeseries, code), t_start,
+                           settle)  # fmt: skip
     finally:
         runlock.release(lock)
 
 
 def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None, manifest: dict,
-                spec: integrity.RunSpec, t_start: float) -> RunResult:  # fmt: skip
+                spec: integrity.RunSpec, t_start: float, settle: Callable[[], None]) -> RunResult:  # fmt: skip
     chunk_dir = out / "chunks"
     shash = manifest["scenario_hash"]
     integrity.remove_stale_temporaries(chunk_dir)
@@ -690,7 +697,8 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
     manifest["backend"] = _backend_record(opts)
     store.write_json(out / "manifest.json", manifest)  # kernels and backend before the first chunk
     if opts.kernels == "compiled" and chunks:
-        _say(opts, compile_note())
+        _say(opts, compile_note())  # (imports the kernel modules, and Numba)
+    settle()  # the start-up's objects frozen, the collector on for the chunks
     stage = publish.new_stage(out)  # the merged tables are written here; published once all chunks verify
     ts_merge = None
     if spec.timeseries != "none":  # fed as the chunks finish: no read-back of this session's chunk files
