@@ -189,7 +189,11 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table | dict, metadata: dict
         raise
 
 
-ROW_GROUP_ROWS = 262_144  # rows per row group of a streamed file (the last one fewer)
+# Rows per row group of a streamed file (the last one fewer). Small enough that a run's time-series merge writes its
+# groups while later chunks still compute, leaving only the last chunks' rows to encode once they finish (case B,
+# 1,000 trials, 202,000 rows: 0.05 s after the last chunk, against 0.13 s with 262,144 rows, which held the whole
+# file until the end); a group of case B's 51 columns is ~26 MB in memory.
+ROW_GROUP_ROWS = 65_536
 
 
 class ParquetStream:
