@@ -723,22 +723,45 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
                     path = None if ts is None else chunk_dir / _chunk_name("timeseries", co.trials)
                     ts_merge.add(int(co.trials[0]), ts, path)
                 ticker.chunk_done(co.trials.size, co.diverged_by, int(co.trials[0]))
-        v = integrity.verify_chunks(chunk_dir, spec)
-        integrity.check_complete(v, spec)
-        if ts_merge is not None and ts_merge.keys != [c["first"] for c in v.chunks]:
-            raise integrity.IntegrityError([f"{chunk_dir}: the verified chunks are not the ones this session merged"])
-        trials, pt = finalize(out, scn, shash, spec.filters, spec, dest=stage, timeseries=ts_merge)
+        trials, pt = _verified_and_finalized(chunk_dir, spec, ts_merge,
+                                             functools.partial(finalize, out, scn, shash, spec.filters, spec,
+                                                               dest=stage, timeseries=ts_merge))  # fmt: skip
     except integrity.IntegrityError as exc:
         _discard(ts_merge, out)
         raise RunError("refusing to merge (nothing published): " + "; ".join(exc.problems)) from None
     except BaseException:
         _discard(ts_merge, out)
         raise
-    manifest["published"] = publish.publish(stage, out)
+    rec = None if ts_merge is None else ts_merge.stream.record  # the time series, hashed as it was written
+    manifest["published"] = publish.publish(stage, out, None if rec is None else {ts_merge.stream.path.name: rec})
     manifest["end"] = store.now_iso()
     manifest["wall_s_last_session"] = round(time.perf_counter() - t_start, 3)
     store.write_json(out / "manifest.json", manifest)
     return RunResult(out, trials, pt, time.perf_counter() - t_start, len(chunks))
+
+
+def _verified_and_finalized(chunk_dir: Path, spec: integrity.RunSpec, ts_merge: InOrderMerge | None,
+                            merge: Callable[[], tuple[tables.Columns, tables.Columns]]):  # fmt: skip
+    """``merge()`` (:func:`finalize` into the staging directory) while another thread verifies the chunk files
+    (``integrity.verify_chunks``: reading and hashing them, the GIL released), then the verification's verdict
+    before the merge's own (:class:`integrity.IntegrityError` for a chunk that does not verify, even where the
+    merge also failed on it); nothing is published before both are done."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    failed: Exception | None = None
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="spmc-verify") as pool:
+        verifying = pool.submit(integrity.verify_chunks, chunk_dir, spec)
+        try:
+            merged = merge()
+        except Exception as exc:  # noqa: BLE001 - raised below, after the verification's verdict
+            failed = exc
+        v = verifying.result()
+    integrity.check_complete(v, spec)
+    if ts_merge is not None and ts_merge.keys != [c["first"] for c in v.chunks]:
+        raise integrity.IntegrityError([f"{chunk_dir}: the verified chunks are not the ones this session merged"])
+    if failed is not None:
+        raise failed
+    return merged
 
 
 def _discard(ts_merge: InOrderMerge | None, out: Path) -> None:

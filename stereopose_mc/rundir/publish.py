@@ -16,6 +16,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Mapping
 
 from .integrity import file_sha256
 from .store import refuse_non_regular
@@ -35,11 +36,18 @@ def new_stage(out: Path) -> Path:
     return Path(tempfile.mkdtemp(dir=out, prefix=STAGE_PREFIX))
 
 
-def publish(stage: Path, out: Path) -> dict[str, dict]:
-    """Rename every file of ``stage`` into ``out``; return ``{name: {"bytes", "sha256"}}`` for the manifest."""
+def publish(stage: Path, out: Path, known: Mapping[str, dict] | None = None) -> dict[str, dict]:
+    """Rename every file of ``stage`` into ``out``; return ``{name: {"bytes", "sha256"}}`` for the manifest.
+
+    ``known``: records the writer took as it wrote a file (``store.ParquetStream.record``), used where the staged
+    file has the recorded size instead of reading the file again; the others are read and hashed here.
+    """
     records = {}
     for f in sorted(Path(stage).iterdir()):
-        records[f.name] = {"bytes": f.stat().st_size, "sha256": file_sha256(f)}
+        size = f.stat().st_size
+        rec = (known or {}).get(f.name)
+        sha = rec["sha256"] if rec is not None and rec.get("bytes") == size else file_sha256(f)
+        records[f.name] = {"bytes": size, "sha256": sha}
     for name in records:
         refuse_non_regular(Path(out) / name)
         os.replace(Path(stage) / name, Path(out) / name)

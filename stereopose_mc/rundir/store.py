@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import json
 import os
 import platform
@@ -196,6 +197,41 @@ def write_parquet(path: Path, df: pd.DataFrame | pa.Table | dict, metadata: dict
 ROW_GROUP_ROWS = 65_536
 
 
+class _DigestingFile:
+    """A binary file for pyarrow's writer that also takes the SHA-256 and the size of what is written to it (the
+    Parquet writer only appends: those of the file once it is closed)."""
+
+    def __init__(self, fh):
+        self._fh = fh
+        self._sha = hashlib.sha256()
+        self.size = 0
+
+    def write(self, data) -> int:
+        self._sha.update(data)
+        self.size += memoryview(data).nbytes
+        return self._fh.write(data)
+
+    def tell(self) -> int:
+        return self._fh.tell()
+
+    def flush(self) -> None:
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._fh.closed
+
+    def writable(self) -> bool:
+        return True
+
+    def record(self) -> dict[str, Any]:
+        """``{"bytes", "sha256"}`` of what was written (``rundir/publish.py``'s record of a file)."""
+        return {"bytes": self.size, "sha256": self._sha.hexdigest()}
+
+
 class ParquetStream:
     """One Parquet file written from tables appended in row order, with fixed-size row groups.
 
@@ -207,15 +243,20 @@ class ParquetStream:
     and the file carries only ``metadata`` (the tables' own schema metadata, e.g. a chunk's
     trial range, is dropped), so its bytes do not depend on how the rows were split.
     ``units``: column -> unit, stored as the field metadata ``unit``.
+
+    The file's size and SHA-256 are taken as it is written (``record``, once closed): a run publishes its
+    time series without reading it back (``rundir/publish.py``).
     """
 
     def __init__(self, path: Path, metadata: dict[str, str] | None = None, units: dict[str, str] | None = None,
                  row_group_rows: int = ROW_GROUP_ROWS):  # fmt: skip
         self.path = Path(path)
         self.rows = 0
+        self.record: dict[str, Any] | None = None  # {"bytes", "sha256"} of the file, once closed
         self._meta = {k.encode(): str(v).encode() for k, v in (metadata or {}).items()}
         self._units, self._group = units, row_group_rows
         self._tmp: str | None = None
+        self._sink: _DigestingFile | None = None
         self._writer = None
         self._buffered: list[pa.Table] = []
         self._n_buf = 0
@@ -228,8 +269,8 @@ class ParquetStream:
         t = with_units(table.replace_schema_metadata(self._meta), self._units)
         if self._writer is None:
             fd, self._tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
-            os.close(fd)
-            self._writer = pq.ParquetWriter(self._tmp, t.schema, **parquet_options(t.schema))
+            self._sink = _DigestingFile(os.fdopen(fd, "wb"))
+            self._writer = pq.ParquetWriter(self._sink, t.schema, **parquet_options(t.schema))
         self._buffered.append(t)
         self._n_buf += t.num_rows
         self.rows += t.num_rows
@@ -251,20 +292,24 @@ class ParquetStream:
                 self._writer.write_table(pa.concat_tables(self._buffered), row_group_size=self._group)
             self._buffered, self._n_buf = [], 0
             self._writer.close()
+            self._sink.close()
             _publish(self._tmp, self.path)
         except BaseException:
             self.abort()
             raise
-        self._writer = self._tmp = None
+        self.record = self._sink.record()
+        self._writer = self._tmp = self._sink = None
         return self.rows
 
     def abort(self) -> None:
         """Drop what was written (the temporary file); ``path`` is left as it was."""
         if self._writer is not None:
             self._writer.close()
+        if self._sink is not None:
+            self._sink.close()
         if self._tmp is not None:
             Path(self._tmp).unlink(missing_ok=True)
-        self._writer = self._tmp = None
+        self._writer = self._tmp = self._sink = None
         self._buffered, self._n_buf = [], 0
 
     def __enter__(self) -> ParquetStream:

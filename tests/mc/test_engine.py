@@ -227,6 +227,31 @@ def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch)
     assert {p.name for p in (out / "chunks").glob("chunk-*.json")} >= {"chunk-0000000-0000001.json"}
 
 
+@pytest.mark.parametrize("kind", ["trials", "timeseries"])
+def test_a_chunk_file_changed_before_the_merge_is_refused_and_nothing_is_published(scenario, tmp_path, monkeypatch,
+                                                                                    kind):  # fmt: skip
+    """The final verification runs beside the merge (engine._verified_and_finalized): its verdict names the changed
+    file, also where the merge itself failed on it (a truncated trials file), and nothing is published."""
+    from stereopose_mc import api
+    from stereopose_mc.api.errors import SpmcError
+    from stereopose_mc.mc import engine
+
+    real = engine._write_chunk
+
+    def write(chunk_dir, co, *args, **kwargs):
+        real(chunk_dir, co, *args, **kwargs)
+        if int(co.trials[0]) == 2:  # after its sidecar: as if another process truncated the file
+            f = chunk_dir / f"{kind}-0000002-0000003.parquet"
+            f.write_bytes(f.read_bytes()[:100])
+
+    monkeypatch.setattr(engine, "_write_chunk", write)
+    out = tmp_path / "run"
+    with pytest.raises(SpmcError, match=f"refusing to merge.*{kind}-0000002-0000003.parquet: truncated or corrupt"):
+        api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading")
+    assert not list(out.glob(".publish-*"))
+    assert not any((out / n).exists() for n in ("trials.parquet", "timeseries.parquet", "percentiles.csv"))
+
+
 def test_summary_time_series_merges_the_first_trials_for_any_chunking(tmp_path):
     import pyarrow.parquet as pq
 

@@ -156,3 +156,40 @@ def test_an_aborted_stream_leaves_the_old_file(chunks, tmp_path):
     assert path.read_bytes() == b"old" and not list(tmp_path.glob(".m.parquet*"))
     with pytest.raises(ValueError, match="no tables"):
         store.ParquetStream(tmp_path / "n.parquet").close()
+
+
+def test_the_stream_records_the_size_and_sha256_of_the_file_it_wrote(chunks, tmp_path):
+    import hashlib
+
+    path = tmp_path / "m.parquet"
+    merged(chunks, path, sorted(chunks))
+    s = store.ParquetStream(tmp_path / "again.parquet", META, UNITS, GROUP)
+    for k in sorted(chunks):
+        s.append(chunks[k][0])
+    assert s.record is None  # not before it is closed
+    s.close()
+    data = (tmp_path / "again.parquet").read_bytes()
+    assert data == path.read_bytes()
+    assert s.record == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    aborted = store.ParquetStream(tmp_path / "gone.parquet", META, UNITS, GROUP)
+    aborted.append(chunks[0][0])
+    aborted.abort()
+    assert aborted.record is None and not list(tmp_path.glob(".gone.parquet.*"))
+
+
+def test_publish_takes_a_writers_record_only_for_a_file_of_the_recorded_size(tmp_path):
+    import hashlib
+
+    from stereopose_mc.rundir import publish
+
+    out = tmp_path / "run"
+    out.mkdir()
+    stage = publish.new_stage(out)
+    (stage / "a.parquet").write_bytes(b"abc")
+    (stage / "b.parquet").write_bytes(b"defg")
+    known = {"a.parquet": {"bytes": 3, "sha256": "recorded"},  # taken: the size matches
+             "b.parquet": {"bytes": 3, "sha256": "stale"}}  # another size: hashed again  # fmt: skip
+    rec = publish.publish(stage, out, known)
+    assert rec == {"a.parquet": {"bytes": 3, "sha256": "recorded"},
+                   "b.parquet": {"bytes": 4, "sha256": hashlib.sha256(b"defg").hexdigest()}}  # fmt: skip
+    assert (out / "a.parquet").read_bytes() == b"abc" and not stage.exists()
