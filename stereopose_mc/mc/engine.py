@@ -254,9 +254,10 @@ def _parquet_meta(scn: Scenario, shash: str, kind: str) -> dict[str, str]:
             "stereopose_mc.seed": str(scn.seed), "stereopose_mc.units": "per field: metadata key 'unit'"}  # fmt: skip
 
 
-def _write_table(path: Path, table: pa.Table | tables.Columns, meta: dict[str, str]) -> None:
-    """A run table as Parquet, atomically, with the run's metadata and every column's unit."""
-    store.write_parquet(path, table, meta, units=tables.COLUMN_UNITS)
+def _write_table(path: Path, table: pa.Table | tables.Columns, meta: dict[str, str]) -> dict:
+    """A run table as Parquet, atomically, with the run's metadata and every column's unit; the file's record
+    (``store.write_parquet``)."""
+    return store.write_parquet(path, table, meta, units=tables.COLUMN_UNITS)
 
 
 def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: integrity.RunSpec) -> None:
@@ -264,13 +265,14 @@ def _write_chunk(chunk_dir: Path, out: ChunkOutput, meta: dict[str, str], spec: 
     first, last = int(out.trials[0]), int(out.trials[-1])
     meta = {**meta, "stereopose_mc.run_id": spec.run_id, "stereopose_mc.first": str(first),
             "stereopose_mc.last": str(last)}  # fmt: skip
-    if _timeseries_rows(out) is not None:
-        _write_table(chunk_dir / _chunk_name("timeseries", out.trials), out.timeseries_table, meta)
-    if out.tracks_table is not None:
-        _write_table(chunk_dir / _chunk_name("tracks", out.trials), out.tracks_table, meta)
-    _write_table(chunk_dir / _chunk_name("timing", out.trials), out.timing_table, meta)
-    _write_table(chunk_dir / _chunk_name("trials", out.trials), out.trials_table, meta)
-    integrity.write_sidecar(chunk_dir, spec, first, last, out.diverged_by)
+    tabs = {"timeseries": out.timeseries_table if _timeseries_rows(out) is not None else None,
+            "tracks": out.tracks_table, "timing": out.timing_table, "trials": out.trials_table}  # fmt: skip
+    written = {}  # the files' checksums, taken as they are written (not read back for the sidecar)
+    for kind, table in tabs.items():
+        if table is not None:
+            name = _chunk_name(kind, out.trials)
+            written[name] = _write_table(chunk_dir / name, table, meta)
+    integrity.write_sidecar(chunk_dir, spec, first, last, out.diverged_by, written)
 
 
 _WATCHING: list[int] = []  # the driver pid this worker process already watches

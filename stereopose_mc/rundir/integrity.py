@@ -27,7 +27,7 @@ import re
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from .. import __version__
 from . import store
@@ -58,6 +58,15 @@ def run_id(scenario_hash: str, seed: int, code: str) -> str:
 def file_sha256(path: Path) -> str:
     with open(path, "rb") as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def written_sha256(path: Path, record: Mapping[str, Any] | None) -> tuple[int, str]:
+    """``(size, sha256)`` of a file: from the writer's record of it (``store.write_parquet``, ``ParquetStream``:
+    taken as the bytes were written) where the file has the recorded size, else read and hashed."""
+    size = path.stat().st_size
+    if record is not None and record.get("bytes") == size:
+        return size, record["sha256"]
+    return size, file_sha256(path)
 
 
 def chunk_file(kind: str, first: int, last: int) -> str:
@@ -101,17 +110,22 @@ class RunSpec:
         return n * len(self.filters) * (self.steps if kind == "timeseries" else 1)
 
 
-def write_sidecar(chunk_dir: Path, spec: RunSpec, first: int, last: int, diverged: dict[str, int]) -> None:
-    """Record the chunk's (already written) files; written last, atomically: the commit marker."""
+def write_sidecar(chunk_dir: Path, spec: RunSpec, first: int, last: int, diverged: dict[str, int],
+                  written: Mapping[str, Mapping[str, Any]] | None = None) -> None:  # fmt: skip
+    """Record the chunk's (already written) files; written last, atomically: the commit marker. ``written``: the
+    writer's records of the files (``written_sha256``), by name; the others are read and hashed."""
     files = {}
+    written = written or {}
     for kind in expected_kinds(first, last, spec.timeseries):
         name = chunk_file(kind, first, last)
         if (chunk_dir / name).is_file():
-            files[name] = {"sha256": file_sha256(chunk_dir / name), "rows": spec.rows(kind, first, last)}
+            sha = written_sha256(chunk_dir / name, written.get(name))[1]
+            files[name] = {"sha256": sha, "rows": spec.rows(kind, first, last)}
     for kind in OPTIONAL_KINDS:
         name = chunk_file(kind, first, last)
         if (chunk_dir / name).is_file():
-            files[name] = {"sha256": file_sha256(chunk_dir / name), "rows": store.parquet_rows(chunk_dir / name)}
+            sha = written_sha256(chunk_dir / name, written.get(name))[1]
+            files[name] = {"sha256": sha, "rows": store.parquet_rows(chunk_dir / name)}
     rec = {"run_id": spec.run_id, "first": first, "last": last, "steps": spec.steps, "files": files,
            "diverged": {k: int(v) for k, v in diverged.items()}}  # fmt: skip
     store.write_json(chunk_dir / sidecar_name(first, last), rec)

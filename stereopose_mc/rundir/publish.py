@@ -18,7 +18,7 @@ import tempfile
 from pathlib import Path
 from typing import Mapping
 
-from .integrity import file_sha256
+from .integrity import file_sha256, written_sha256
 from .store import refuse_non_regular
 
 STAGE_PREFIX = ".publish-"
@@ -44,9 +44,7 @@ def publish(stage: Path, out: Path, known: Mapping[str, dict] | None = None) -> 
     """
     records = {}
     for f in sorted(Path(stage).iterdir()):
-        size = f.stat().st_size
-        rec = (known or {}).get(f.name)
-        sha = rec["sha256"] if rec is not None and rec.get("bytes") == size else file_sha256(f)
+        size, sha = written_sha256(f, (known or {}).get(f.name))
         records[f.name] = {"bytes": size, "sha256": sha}
     for name in records:
         refuse_non_regular(Path(out) / name)

@@ -193,3 +193,12 @@ def test_publish_takes_a_writers_record_only_for_a_file_of_the_recorded_size(tmp
     assert rec == {"a.parquet": {"bytes": 3, "sha256": "recorded"},
                    "b.parquet": {"bytes": 4, "sha256": hashlib.sha256(b"defg").hexdigest()}}  # fmt: skip
     assert (out / "a.parquet").read_bytes() == b"abc" and not stage.exists()
+
+
+def test_write_parquet_returns_the_size_and_sha256_of_the_file_it_wrote(chunks, tmp_path):
+    import hashlib
+
+    rec = store.write_parquet(tmp_path / "one.parquet", chunks[0][0], META, units=UNITS)
+    data = (tmp_path / "one.parquet").read_bytes()
+    assert rec == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    assert not list(tmp_path.glob(".one.parquet.*"))  # no temporary left
