@@ -743,7 +743,8 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
 
 
 def _verified_and_finalized(chunk_dir: Path, spec: integrity.RunSpec, ts_merge: InOrderMerge | None,
-                            merge: Callable[[], tuple[tables.Columns, tables.Columns]]):  # fmt: skip
+                            merge: Callable[[], tuple[tables.Columns, tables.Columns]],
+                            ) -> tuple[tables.Columns, tables.Columns]:  # fmt: skip
     """``merge()`` (:func:`finalize` into the staging directory) while another thread verifies the chunk files
     (``integrity.verify_chunks``: reading and hashing them, the GIL released), then the verification's verdict
     before the merge's own (:class:`integrity.IntegrityError` for a chunk that does not verify, even where the
