@@ -562,7 +562,22 @@ def _say(opts: RunOptions, lines: list[str], limit: int = 20) -> None:
 def _backend_record(opts: RunOptions) -> dict:
     """The manifest's ``backend`` as this session asks for it (``_iterate`` adds ``ran_as`` and Dask's facts)."""
     return {"backend": opts.backend, "jobs": opts.jobs, "address": opts.scheduler, "workers": None,
-            "kernels": opts.kernels}  # fmt: skip
+            "kernels": opts.kernels, "blas": blas_kernels()}  # fmt: skip
+
+
+def blas_kernels() -> str:
+    """The BLAS of this process and the kernels it chose for the CPU, e.g. ``openblas SkylakeX`` (``spmc`` chooses
+    them on some CPUs, ``cli/blas.py``; their round-off differs). Recorded in the manifest; ``spmc rerun`` says when
+    its own differ from the run's."""
+    from threadpoolctl import threadpool_info
+
+    found = {f"{i['internal_api']} {i.get('architecture') or '?'}" for i in threadpool_info() if i["user_api"] == "blas"}
+    return ", ".join(sorted(found)) or "none"
+
+
+def recorded_blas(out: Path) -> str | None:
+    """The BLAS kernels a run's last session recorded (``blas_kernels``; None: not recorded)."""
+    return (_read_manifest(out).get("backend") or {}).get("blas")
 
 
 def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: str) -> tuple[dict, int]:

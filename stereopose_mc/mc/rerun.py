@@ -72,6 +72,10 @@ def rerun_trial(run_dir: Path, trial: int, out: Path | None = None) -> RerunResu
         same = recomputed.equals(stored)
         identical = bool(same)
         lines.append("identical to trials.parquet" if same else "DIFFERS from trials.parquet")
+        run_blas, own_blas = engine.recorded_blas(run_dir), engine.blas_kernels()
+        if run_blas is not None and run_blas != own_blas:
+            lines.append(f"note: the run's BLAS kernels ({run_blas}) are not this process's ({own_blas}): their "
+                         "round-off differs (the last digits, and a trial on the edge of a rule)")  # fmt: skip
     else:
         lines.append("(trial not in trials.parquet yet: nothing to compare)")
     if out is not None:

@@ -131,6 +131,24 @@ def test_rerun_reproduces_a_trial(reference, tmp_path):
     pd.testing.assert_frame_equal(ts.reset_index(drop=True), ref)
 
 
+def test_the_manifest_records_the_blas_kernels_and_rerun_says_when_its_own_differ(reference, monkeypatch):
+    import json
+
+    from threadpoolctl import threadpool_info
+
+    from stereopose_mc.mc import engine
+
+    recorded = json.loads((reference / "manifest.json").read_text())["backend"]["blas"]
+    archs = {i.get("architecture") for i in threadpool_info() if i["user_api"] == "blas"}
+    assert recorded == engine.blas_kernels() and any(a in recorded for a in archs)  # e.g. "openblas Haswell"
+    r = spmc("rerun", reference, "--trial", 5)
+    assert r.exit_code == 0 and "BLAS kernels" not in r.output  # the same kernels: nothing to say
+    monkeypatch.setattr(engine, "blas_kernels", lambda: "openblas OtherCPU")
+    r = spmc("rerun", reference, "--trial", 5)
+    assert r.exit_code == 0, r.output
+    assert f"the run's BLAS kernels ({recorded}) are not this process's (openblas OtherCPU)" in r.output
+
+
 def test_dask_local_cluster_equals_local_run(scenario, reference, tmp_path):
     pytest.importorskip("dask.distributed")
     out = tmp_path / "run"
