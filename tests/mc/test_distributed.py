@@ -39,4 +39,4 @@ def test_killed_worker_still_gives_identical_results(quick_scenario, tmp_path):
         assert (out / n).read_bytes() == (reference / n).read_bytes(), n
     man = json.loads((out / "manifest.json").read_text())
     assert man["backend"] == {"backend": "dask", "jobs": 1, "address": cluster.scheduler_address, "workers": 2,
-                              "kernels": "compiled", "ran_as": "dask"}
+                              "kernels": "compiled", "blas": engine.blas_kernels(), "ran_as": "dask"}
