@@ -13,6 +13,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -239,6 +240,9 @@ def test_kernel_sections_measure_the_default_command(results):
     ref = e2e["wall, 2 trials, --kernels numpy (the reference), warm"]
     assert e2e["ratio numpy / compiled (warm, default jobs)"].value == pytest.approx(ref.value / warm.value)
     assert "2-trial run, warm, default command: median" in e2e and "spmc --help, warm: median" in e2e
+    own = e2e.get("wall, 2 trials, default command, warm, OpenBLAS's own kernels")  # informative, where it is set
+    assert (own is not None) == bool(os.environ.get("OPENBLAS_CORETYPE"))
+    assert own is None or (own.target == "" and own.value > 0 and "alternated with the judged row's runs" in own.note)
     real = {r.measure.split(":")[0]: r for r in rows["realistic"]}
     assert set(real) == {"mission-realistic", "mission-mesh-dispersed"}
     assert real["mission-realistic"].target == "<= 30 s (1,000 trials)"
