@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Mapping
 
 import numpy as np
 import yaml
-from threadpoolctl import threadpool_limits
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from typing import NamedTuple
 
@@ -569,8 +569,6 @@ def blas_kernels() -> str:
     """The BLAS of this process and the kernels it chose for the CPU, e.g. ``openblas SkylakeX`` (``spmc`` chooses
     them on some CPUs, ``cli/blas.py``; their round-off differs). Recorded in the manifest; ``spmc rerun`` says when
     its own differ from the run's."""
-    from threadpoolctl import threadpool_info
-
     found = {f"{i['internal_api']} {i.get('architecture') or '?'}" for i in threadpool_info() if i["user_api"] == "blas"}
     return ", ".join(sorted(found)) or "none"
 
