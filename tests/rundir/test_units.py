@@ -79,7 +79,8 @@ def test_compare_reads_old_float_percentile_tables(run, tmp_path):
 @pytest.mark.parametrize("name", TABLES)
 def test_float_columns_are_written_without_dictionary_pages(run, name):
     """``store.parquet_options``: dictionary pages only for the columns that are not floating point (a dictionary
-    of nearly all-distinct floats costs time and size), zstd everywhere; the values read back are the table's."""
+    of nearly all-distinct floats costs time and size); zstd on the other columns, none on the floats (it took more
+    than half of the writing time for 5-9 % of their size); the values read back are the table's."""
     import pyarrow.types as pat
 
     f = pq.ParquetFile(run / name)
@@ -87,8 +88,8 @@ def test_float_columns_are_written_without_dictionary_pages(run, name):
     seen_float = seen_other = 0
     for i, field in enumerate(f.schema_arrow):
         col = rg.column(i)
-        assert col.compression == "ZSTD", (name, field.name)
         has_dict = col.dictionary_page_offset is not None
+        assert col.compression == ("UNCOMPRESSED" if pat.is_floating(field.type) else "ZSTD"), (name, field.name)
         if pat.is_floating(field.type):
             assert not has_dict, (name, field.name, col.encodings)
             seen_float += 1
