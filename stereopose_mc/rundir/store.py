@@ -144,15 +144,13 @@ def parquet_options(schema: pa.Schema) -> dict[str, Any]:
     (``filter``, ``trial``, ``step``, counts, flags) dictionary-encoded and zstd-compressed; the floating-point
     columns plain and uncompressed.
 
-    Dictionary encoding suits the few distinct values of ``filter``, ``trial`` or ``step``; on the
-    float columns (errors, sigmas, NEES: nearly all values distinct) the writer fills a dictionary
-    page, gives up and falls back to plain pages, which took 2.6x the time of the whole file for a
-    larger file (case B's 1,000-trial time series: 0.11 s and 17.1 MB with dictionaries everywhere,
-    0.04 s and 13.6 MB without them on the floats). Those floats' mantissas are nearly random, so
-    zstd takes 5-9 % off their pages at more than half of the writing time: 80,800 rows of case B's
-    time series took 57 ms and 24.2 MB with zstd on every column, 24 ms and 26.3 MB with the floats
-    uncompressed (zstd's fast levels: 30-36 ms for 25.7 MB). Every chunk's time series is written
-    twice (its chunk file, then the merged file), the last chunks' after the last trial is computed.
+    Dictionary encoding suits the few distinct values of ``filter``, ``trial`` or ``step``; on the float columns
+    (errors, sigmas, NEES: nearly all values distinct) the writer would fill a dictionary page, give up and fall
+    back to plain pages, for 2.6x the time of the whole file and a larger file. Their mantissas are nearly random,
+    so zstd takes only 5-9 % off their pages, at more than half of the writing time: 80,800 rows of case B's time
+    series (51 columns) took 57 ms and 24.2 MB with zstd on every column, 24 ms and 26.3 MB with the floats
+    uncompressed (zstd's fast levels: 30-36 ms, 25.7 MB). A run writes each chunk's time series twice (its chunk
+    file, then the merged file), the last chunks' after its last trial.
     """
     import pyarrow.types as pat
 
