@@ -566,9 +566,9 @@ def _backend_record(opts: RunOptions) -> dict:
 
 
 def blas_kernels() -> str:
-    """The BLAS of this process and the kernels it chose for the CPU, e.g. ``openblas SkylakeX`` (``spmc`` chooses
-    them on some CPUs, ``cli/blas.py``; their round-off differs). Recorded in the manifest; ``spmc rerun`` says when
-    its own differ from the run's."""
+    """The BLAS of this process and the kernels it runs, e.g. ``openblas Haswell`` (OpenBLAS's choice for the CPU,
+    or ``OPENBLAS_CORETYPE``'s; their round-off differs). Recorded in the manifest; ``spmc rerun`` says when its own
+    differ from the run's."""
     found = {f"{i['internal_api']} {i.get('architecture') or '?'}" for i in threadpool_info() if i["user_api"] == "blas"}
     return ", ".join(sorted(found)) or "none"
 

@@ -32,7 +32,6 @@ def paused() -> Iterator[Callable[[], None]]:
     ``settle`` may be called more than once (the later calls do nothing). Leaving the block without it (an
     error during the start-up) resumes the collector without freezing.
     """
-    global _settled
     with _lock:
         active = not _settled and gc.isenabled()
         if active:
