@@ -19,6 +19,7 @@ from numba import njit
 
 from ..camera import CHANNELS
 from ..layout import K_SIZE, OMEGA, POINTS, PSEUDO_ROWS, QUAT, QUAT_SIZE, RHO, VEC
+from ._refs import borrow, keep
 from .model import _dcm, n_channels as _n_channels, n_points as _n_points
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
@@ -115,15 +116,18 @@ def flow_variance_batch(x, P, w0, p0, baseline, disparity, focal):
     ``omega`` block of ``P`` at ``w0`` and the points' blocks from ``p0``."""
     B, n = x.shape
     out = np.zeros((B, _n_points(n), _n_channels(disparity)))
-    D, S_r, M, T = np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC))
-    V, K, Rx = np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC))
+    own = np.empty((7, VEC, VEC))  # the 3 x 3 scratch D, S_r, M, T, V, K, Rx
+    # borrowed (_refs: no atomic reference counts in the per-trial views and calls); the scratch kept to the end
+    x, P, ob, ws = borrow((x, P, out, own))
+    D, S_r, M, T, V, K, Rx = ws[0], ws[1], ws[2], ws[3], ws[4], ws[5], ws[6]
     f2 = focal * focal
     for b in range(B):
-        _flow_variance(x[b], P[b], w0, p0, baseline, out[b], D, S_r, M, T, V, K, Rx)
+        _flow_variance(x[b], P[b], w0, p0, baseline, ob[b], D, S_r, M, T, V, K, Rx)
         if focal != 1.0:
-            for i in range(out.shape[1]):
-                for c in range(out.shape[2]):
-                    out[b, i, c] *= f2
+            for i in range(ob.shape[1]):
+                for c in range(ob.shape[2]):
+                    ob[b, i, c] *= f2
+    keep(own)
     return out
 
 
@@ -188,10 +192,13 @@ def pseudo_variance_batch(x, P, w0, nd):
     ``w0`` and its last ``K_SIZE`` rows (``k``); ``nd`` the leader's ``nu'``."""
     B = x.shape[0]
     out = np.empty((B, PSEUDO_ROWS))
-    D, S, T = np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC))
-    C_kw, A = np.empty((K_SIZE, VEC)), np.empty((K_SIZE, K_SIZE))
+    own = (np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((K_SIZE, VEC)),
+           np.empty((K_SIZE, K_SIZE)))  # fmt: skip
+    x, P, ob = borrow((x, P, out))  # (_refs; the scratch kept to the end)
+    D, S, T, C_kw, A = borrow(own)
     for b in range(B):
-        _pseudo_variance(x[b], P[b], w0, nd, out[b], D, S, T, C_kw, A)
+        _pseudo_variance(x[b], P[b], w0, nd, ob[b], D, S, T, C_kw, A)
+    keep(own)
     return out
 
 
@@ -208,16 +215,18 @@ def rate_noise_batch(x, P, w0, nd, dt, Q):
     ``pseudo_variance_batch``) and ``(sum_b |D_ab| sqrt(v_b))^2`` per axis ``a`` of ``L``."""
     B, n = x.shape
     out = np.empty((B, n))
-    v = np.empty(PSEUDO_ROWS)
-    D, S, T = np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC))
-    C_kw, A = np.empty((K_SIZE, VEC)), np.empty((K_SIZE, K_SIZE))
+    own = (np.empty(PSEUDO_ROWS), np.empty((VEC, VEC)), np.empty((VEC, VEC)), np.empty((VEC, VEC)),
+           np.empty((K_SIZE, VEC)), np.empty((K_SIZE, K_SIZE)))  # fmt: skip
+    x, P, Q, ob = borrow((x, P, Q, out))  # (_refs; the scratch kept to the end)
+    v, D, S, T, C_kw, A = borrow(own)
     dt2 = dt * dt
     for b in range(B):
         for i in range(n):
-            out[b, i] = Q[i]
+            ob[b, i] = Q[i]
         _pseudo_variance(x[b], P[b], w0, nd, v, D, S, T, C_kw, A)  # (D = D(q) of x[b] on return)
         s0, s1, s2 = math.sqrt(_nonneg(v[0])), math.sqrt(_nonneg(v[1])), math.sqrt(_nonneg(v[2]))
         for a in range(VEC):
             r = (abs(D[a, 0]) * s0 + abs(D[a, 1]) * s1) + abs(D[a, 2]) * s2
-            out[b, OMEGA + a] += dt2 * (r * r)
+            ob[b, OMEGA + a] += dt2 * (r * r)
+    keep(own)
     return out

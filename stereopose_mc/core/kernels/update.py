@@ -118,15 +118,15 @@ def _measure_at(chart, xp, e, model, alpha, compute_jac, hx, Hval, xt, D, dD):
 
 
 @njit(**_JIT)
-def _reset(chart, xp, e, out):
+def _reset(chart, xp, e, out, D, dD):
     """The posterior state ``x- [+] e``: ``x- + e`` with its quaternion renormalized (full), ``aligned.chart`` or
-    ``errorstate.chart``."""
+    ``errorstate.chart``. ``D (3, 3)``, ``dD (4, 3, 3)``: scratch (``aligned.chart``'s)."""
     if chart == CHART_FULL:
         for i in range(xp.shape[0]):
             out[i] = xp[i] + e[i]
         _normalize_q(out)
     elif chart == CHART_ALIGNED:
-        _chart(xp, e, out, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+        _chart(xp, e, out, D, dD[0], dD[1, 0])
     else:
         _att._chart(xp, e, out)
 
@@ -286,9 +286,10 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
         dD = borrow(own)  # fmt: skip
     L = Laug[:n]
     if judged:  # (only then: its views cost time to make and release, which a single trial's step would pay)
-        nws = _nees_scratch(nx, n)  # (referenced through the loop: _nees_one reads it)
-        wf = borrow((nws.Tm, nws.e, nws.W5, nws.eps, nws.C, nws.Lb, nws.w, nws.D, nws.Dt, nws.R, nws.dq, nws.tmp,
-                     nws.v3))  # _one_full's scratch, the arguments of _nees_given after out
+        nws = _nees_scratch(nx, n)  # (the owner, kept to the end: _nees_one reads its borrowed arrays, nwb)
+        nwb = borrow(nws)  # (its arrays unborrowed would cost _nees_one's calls hundreds of atomic counts per trial)
+        wf = (nwb.Tm, nwb.e, nwb.W5, nwb.eps, nwb.C, nwb.Lb, nwb.w, nwb.D, nwb.Dt, nwb.R, nwb.dq, nwb.tmp,
+              nwb.v3)  # _one_full's scratch, the arguments of _nees_given after out
     for b in range(B):
         xp = x[b]
         yb = y[b]
@@ -455,7 +456,7 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             ok[b] = False
             continue
         _sqrt_mul(L, z, e, cen, Np, g2)
-        _reset(chart, xp, e, xo[b])
+        _reset(chart, xp, e, xo[b], D, dD)  # (D, dD: free after the last measurement)
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
         if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T (its factor T^-1 M' is not triangular: none given)
@@ -468,11 +469,11 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 33-array NeesScratch
                 st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], *wf)
             if st < 0:
-                st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nws) else 0
+                st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nwb) else 0
                 if st == 1 and chart == CHART_ALIGNED:  # the per-axis errors and variances its block NEES formed
                     for r in range(N_AXES):
-                        ev[b, 9 + r] = nws.eps[_axis_row(r, n)]
-                        ev[b, 9 + N_AXES + r] = nws.ax[r]
+                        ev[b, 9 + r] = nwb.eps[_axis_row(r, n)]
+                        ev[b, 9 + N_AXES + r] = nwb.ax[r]
             ev[b, 8] = float(st)
     if judged:
         keep(nws)
