@@ -14,16 +14,18 @@ cache, ``cache=True``). One idea per module:
   posterior's NEES as it forms it); ``consistency``: the per-step NEES and errors.
 
 The state's offsets come from ``core.layout``. ``_cache`` keys Numba's cache by the whole package's source and
-the core modules it imports; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``; ``_refs``
-lets the kernels' per-trial loops work on borrowed arrays, without the atomic reference counting of their views
-and calls (``borrow``, and ``keep`` for the owners).
+the core modules it imports; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``;
+``_lock_events`` takes Numba's event callbacks off llvmlite's lock (loading from the cache makes thousands of LLVM
+calls); ``_refs`` lets the kernels' per-trial loops work on borrowed arrays, without the atomic reference counting
+of their views and calls (``borrow``, and ``keep`` for the owners).
 """
 
 import numpy as np
 
-from . import _blas, _cache
+from . import _blas, _cache, _lock_events
 
 _blas.preload()  # SciPy's BLAS/LAPACK tables for Numba, without scipy.linalg's slow import
+_lock_events.remove()  # no Python event around each of the cache loads' thousands of LLVM calls
 _cache.install()  # before any kernel module is imported: their @njit(cache=True) pick a locator when decorated
 
 
