@@ -15,16 +15,19 @@ cache, ``cache=True``). One idea per module:
 
 The state's offsets come from ``core.layout``. ``_cache`` keys Numba's cache by the whole package's source and
 the core modules it imports; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``;
-``_lock_events`` takes Numba's event callbacks off llvmlite's lock (loading from the cache makes thousands of LLVM
-calls); ``_refs`` lets the kernels' per-trial loops work on borrowed arrays, without the atomic reference counting
-of their views and calls (``borrow``, and ``keep`` for the owners).
+``_lazy_bitcode`` loads a cached kernel without parsing the LLVM bitcode Numba keeps beside its machine code (parsed
+only if a later compile links the kernel); ``_lock_events`` takes Numba's event callbacks off llvmlite's lock
+(loading from the cache makes thousands of LLVM calls); ``_refs`` lets the kernels' per-trial loops work on
+borrowed arrays, without the atomic reference counting of their views and calls (``borrow``, and ``keep`` for the
+owners).
 """
 
 import numpy as np
 
-from . import _blas, _cache, _lock_events
+from . import _blas, _cache, _lazy_bitcode, _lock_events
 
 _blas.preload()  # SciPy's BLAS/LAPACK tables for Numba, without scipy.linalg's slow import
+_lazy_bitcode.install()  # a cached kernel's LLVM bitcode parsed only if a later compile links it
 _lock_events.remove()  # no Python event around each of the cache loads' thousands of LLVM calls
 _cache.install()  # before any kernel module is imported: their @njit(cache=True) pick a locator when decorated
 
