@@ -42,8 +42,10 @@ def install() -> bool:
     from numba.core import codegen
 
     lib_cls, jit_cls = getattr(codegen, "CPUCodeLibrary", None), getattr(codegen, "JITCodeLibrary", None)
-    if lib_cls is None or jit_cls is None or getattr(lib_cls, "_spmc_lazy", False):
-        return bool(getattr(lib_cls, "_spmc_lazy", False))
+    if lib_cls is None or jit_cls is None:
+        return False
+    if getattr(lib_cls, "_spmc_lazy", False):
+        return True  # installed already
     names = ("_unserialize", "_get_module_for_linking", "enable_object_caching", "_set_compiled_object",
              "_finalize_final_module")  # fmt: skip
     if not all(hasattr(lib_cls, n) for n in names) or not hasattr(jit_cls, "get_pointer_to_function"):
