@@ -25,8 +25,12 @@ $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 
 venv: $(STAMP)
 
+# The suite runs on every core available (pytest-xdist, one worker per core, a test module's tests on one worker so
+# its module fixtures run once); PYTEST_JOBS= runs it in one process (a single test, a debugger).
+PYTEST_JOBS ?= -n auto --dist loadscope
+
 test: $(STAMP)
-	$(PINNED_BLAS) $(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(PINNED_BLAS) $(BIN)/python -m pytest $(PYTEST_JOBS) $(PYTEST_ARGS)
 
 demo: $(STAMP)
 	$(BIN)/spmc run configs/caseB.yaml --overwrite
