@@ -8,6 +8,16 @@ import pytest
 from scenarios import write_scenario
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config) -> int:
+    """``make test``'s ``-n auto``: one worker per core available to the process, as ``--jobs``' default counts
+    them (``mc.cores.available_cores``: the affinity mask capped by a cgroup CPU quota; xdist's own count reads the
+    affinity mask only)."""
+    from stereopose_mc.mc.cores import available_cores
+
+    return available_cores()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _session_truth_cache(tmp_path_factory):
     """The truth cache (sim/truth_cache.py) of this test session in its own directory, never ~/.cache:
