@@ -249,11 +249,14 @@ def numpy_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, 
     return estimators.update(x, P, step, rows, fs, setup, model=measurement_model)
 
 
-def gate_blocks(x: Array, P: Array, R: Array, alpha: Array, model: km.StepModel, cols: Array, chart: int,
-                nvis: int, C: int) -> tuple[Array, Array]:
-    """``h`` at the prior and the gate's blocks ``S_f = H_f P H_f^T + R_f`` ``(b, F, C, C)`` in the filter's
-    coordinates, from the row-sparse ``H`` (``core.kernels.gate``: the twin of ``gating.linearized_blocks`` on the
-    dense ``H``, which costs ``C n^2`` per feature where this costs ``C 16^2``).
+def gate_distances(x: Array, P: Array, y: Array, R: Array, alpha: Array, model: km.StepModel, cols: Array,
+                   chart: int, nvis: int, C: int) -> Array:
+    """The gate's squared distances ``d_f^2 = nu_f^T S_f^-1 nu_f`` ``(b, F)`` at the prior in the filter's coordinates,
+    ``S_f = H_f P H_f^T + R_f`` from the row-sparse ``H`` (``core.kernels.gate``: the twin of ``gating.distances2``
+    on ``gating.linearized_blocks`` of the dense ``H``, which costs ``C n^2`` per feature where this costs
+    ``C 16^2``). A trial with a block that is not positive definite (a NaN ``d^2`` from the kernel's Cholesky
+    factor) takes ``gating.distances2`` on its blocks, as every trial did before the kernel (``LinAlgError`` on a
+    singular block, for ``mc.trial._robust_update``).
 
     ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1, 2: ``mekf.error_measurement`` at ``e = 0``.
     """
@@ -261,11 +264,14 @@ def gate_blocks(x: Array, P: Array, R: Array, alpha: Array, model: km.StepModel,
         hx, Hval = km.measure_batch(x, model, alpha, True)
     else:
         hx, Hval = kch.measure_batch(chart, x, np.zeros(P.shape[:2]), model, alpha, True)
-    FC = nvis * C
-    first = np.broadcast_to(cols[:FC:C, None], (nvis, C, cols.shape[1]))  # each feature's first row's columns
-    if not np.array_equal(cols[:FC].reshape(nvis, C, -1), first):
-        raise ValueError("the gate's blocks need each feature's rows on the same columns of the row-sparse H")
-    return hx, kg.innovation_blocks_batch(Hval, cols, P, R, nvis, C, chart == CHART_ALIGNED)
+    nu = y - hx
+    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, R, nu, nvis, C, chart == CHART_ALIGNED)
+    redo = np.flatnonzero(np.isnan(d2).any(axis=-1))
+    if redo.size:
+        from . import gating
+
+        d2[redo] = gating.distances2(nu[redo], S[redo])
+    return d2
 
 
 def _iterated(fs: FilterSetup, setup: Setup, step: relnav.StepMeasurement) -> dict | None:
@@ -342,6 +348,9 @@ def _constants(fs: FilterSetup, setup: Setup, visible: Array, b: int, ne: int) -
     chart = chart_code(fs)
     cols = (km.measurement_columns(ne, vis, C, setup.pseudo) if chart == CHART_FULL else
             kch.measurement_columns(chart, ne, vis, C, setup.pseudo))  # fmt: skip
+    FC = vis.size * C  # the gate's kernel reads each feature's columns from its first row (core.kernels.gate)
+    if not np.array_equal(cols[:FC], np.repeat(cols[:FC:C], C, axis=0)):
+        raise ValueError("each feature's rows of the row-sparse H must see the same columns")
     fixed = (np.zeros(b, int), np.full(b, vis.size, np.int64), np.ones(b, int), np.ones(b, bool))
     for a in fixed:
         a.flags.writeable = False
@@ -387,8 +396,7 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     if fs.gate_probability is not None and nvis:
         from . import gating
 
-        hx, S = gate_blocks(x, P, R, alpha, model, cols, chart, nvis, C)
-        d2 = gating.distances2(y - hx, S)
+        d2 = gate_distances(x, P, y, R, alpha, model, cols, chart, nvis, C)
         keep, rejected, lam = gating.robust_gate(d2, fs.gate_probability, C, keep, fs.gate_inflate)
         P = gating.inflated(P, lam)
     if keep is not None:

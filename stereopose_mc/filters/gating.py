@@ -16,7 +16,8 @@ measure). For a correct feature ``d_f^2 ~ chi2(C)``, so it is rejected with prob
 
 Any filter can use the gate: ``gate`` takes innovations and innovation-covariance
 blocks however they were obtained (a UKF passes its sigma-point ``S`` blocks);
-``linearized_blocks`` computes them for an EKF-type filter. A rejected (or dropped)
+``linearized_blocks`` computes them for an EKF-type filter (the compiled filters: ``core.kernels.gate``, from
+the row-sparse ``H``, with the distances). A rejected (or dropped)
 feature is removed from the update by ``masked_measure``: its rows get ``h(x) = y`` and
 ``H = 0``, which is exactly the update without those rows (its column of the gain is
 zero, it adds nothing to the NIS or to the IEKF's cost), at a fixed batch shape.

@@ -35,7 +35,8 @@ WARM_STEPS = 6
 
 
 def dispatchers() -> list:
-    """Every ``@njit(cache=True)`` function of ``core.kernels`` (imports the modules; compiles nothing)."""
+    """Every ``@njit(cache=True)`` function of ``core.kernels`` (imports the modules; compiles nothing). A kernel
+    module's ``@njit`` without ``cache=True`` (Numba's ``NullCache``: no index file) is not one of them."""
     from numba.core.registry import CPUDispatcher
 
     from ..core import kernels
@@ -44,7 +45,7 @@ def dispatchers() -> list:
     for info in pkgutil.iter_modules(kernels.__path__):
         mod = importlib.import_module(f"{kernels.__name__}.{info.name}")
         out += [v for v in vars(mod).values() if isinstance(v, CPUDispatcher) and v.__module__ == mod.__name__
-                and getattr(v, "_cache", None)]  # fmt: skip
+                and hasattr(getattr(v, "_cache", None), "_cache_file")]  # fmt: skip
     return out
 
 

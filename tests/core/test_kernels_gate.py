@@ -1,5 +1,5 @@
-"""The gate's compiled innovation-covariance blocks (core/kernels/gate.py) against their numpy twin,
-``filters.gating.linearized_blocks`` on the dense ``H``, in the three charts."""
+"""The gate's compiled innovation-covariance blocks and distances (core/kernels/gate.py) against their numpy twins,
+``filters.gating.linearized_blocks`` on the dense ``H`` and ``gating.distances2``, in the three charts."""
 
 from __future__ import annotations
 
@@ -39,12 +39,14 @@ def test_blocks_match_the_dense_product(chart, disparity):
         H = kch.dense(chart, Hval, cols, n)
     P = spd(3, n, seed=chart)
     R = 10.0 ** np.random.default_rng(7).uniform(-10, -6, size=(3, Hval.shape[1]))
-    S = kg.innovation_blocks_batch(Hval, cols, P, R, VIS.size, C, chart == 1)
+    nu = np.random.default_rng(8).normal(size=R.shape) * np.sqrt(R) * 3.0
+    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, R, nu, VIS.size, C, chart == 1)
     ref = gating.linearized_blocks(H, P, R, VIS.size, C)
-    assert S.shape == (3, VIS.size, C, C)
+    assert S.shape == (3, VIS.size, C, C) and d2.shape == (3, VIS.size)
     scale = np.sqrt(np.einsum("bfii,bfjj->bfij", ref, ref))  # |S_ij| <= sqrt(S_ii S_jj)
     assert np.max(np.abs(S - ref) / scale) < 1e-12
     assert np.array_equal(S, np.swapaxes(S, -1, -2))  # each block exactly symmetric
+    np.testing.assert_allclose(d2, gating.distances2(nu, ref), rtol=1e-9, atol=0)
 
 
 def test_virtual_columns_are_the_point_sums():
@@ -57,9 +59,52 @@ def test_virtual_columns_are_the_point_sums():
     Hval = np.zeros((1, 1, 16))
     Hval[0, 0, 0] = 1.0
     P = np.eye(n)[None].copy()
-    S = kg.innovation_blocks_batch(Hval, cols, P, np.array([[0.5]]), 1, 1, True)
+    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, np.array([[0.5]]), np.array([[3.0]]), 1, 1, True)
     assert S[0, 0, 0, 0] == N + 0.5
+    np.testing.assert_allclose(d2[0, 0], 9.0 / (N + 0.5), rtol=1e-15)
     P[0, E_POINTS, E_POINTS + 3] = P[0, E_POINTS + 3, E_POINTS] = 0.25  # points 0 and 1, axis 0: +2 * 0.25
     P[0, E_POINTS + 1, E_POINTS + 1] = 9.0  # axis 1: not read
-    S = kg.innovation_blocks_batch(Hval, cols, P, np.array([[0.5]]), 1, 1, True)
+    S, _ = kg.innovation_blocks_batch(Hval, cols, P, np.array([[0.5]]), np.array([[3.0]]), 1, 1, True)
     assert S[0, 0, 0, 0] == N + 0.5 + 0.5
+
+
+def test_distance_by_hand_and_a_block_that_is_not_positive_definite():
+    """Full chart, two features of two rows on columns 0 and 1: ``S_0 = diag(2, 3) + R``, ``nu = (1, 1)``:
+    ``d^2 = 1/3 + 1/4``; a negative variance on the second feature (``S_1`` indefinite): NaN from the kernel (LU,
+    ``gating.distances2``, gives a number there: ``compiled.gate_distances`` hands such trials to it)."""
+    cols = np.zeros((4, 16), np.int64)
+    cols[:, 1] = 1
+    Hval = np.zeros((1, 4, 16))
+    Hval[0, [0, 2], 0] = 1.0
+    Hval[0, [1, 3], 1] = 1.0
+    P = np.diag([2.0, 3.0])[None].copy()
+    R = np.array([[1.0, 1.0, 1.0, -5.0]])
+    nu = np.ones((1, 4))
+    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, R, nu, 2, 2, False)
+    np.testing.assert_array_equal(S[0, 0], [[3.0, 0.0], [0.0, 4.0]])
+    np.testing.assert_allclose(d2[0, 0], 1.0 / 3.0 + 1.0 / 4.0, rtol=1e-15)
+    assert np.isnan(d2[0, 1])
+    np.testing.assert_allclose(gating.distances2(nu, S)[0], [1.0 / 3.0 + 1.0 / 4.0, 1.0 / 3.0 - 1.0 / 2.0])
+
+
+def test_gate_distances_match_numpy_and_fall_back_on_an_indefinite_prior():
+    """``compiled.gate_distances`` against ``gating.distances2`` on the dense blocks; trial 1's ``P`` indefinite (a
+    filter losing track): its blocks go to LU as before, the same numbers."""
+    from stereopose_mc.filters import compiled
+
+    x, _, alpha = case(B=2, N=6)
+    n, C = x.shape[-1], 8
+    model = km.StepModel(VIS, 0.7, False, 1.0, True, ND, NDD)
+    cols = km.measurement_columns(n, VIS, C, True)
+    P = spd(2, n, seed=3)
+    v = np.zeros(n)
+    v[:3] = 1.0  # rho: seen by every feature
+    P[1] -= 10.0 * np.outer(v, v)
+    R = np.full((2, cols.shape[0]), 1e-6)
+    hx, Hval = km.measure_batch(x, model, alpha, True)
+    y = hx + np.random.default_rng(4).normal(size=hx.shape) * 1e-3
+    _, d2k = kg.innovation_blocks_batch(Hval, cols, P, R, y - hx, VIS.size, C, False)
+    assert not np.isnan(d2k[0]).any() and np.isnan(d2k[1]).any()
+    ref = gating.distances2(y - hx, gating.linearized_blocks(km.dense(Hval, cols, n), P, R, VIS.size, C))
+    d2 = compiled.gate_distances(x, P, y, R, alpha, model, cols, 0, VIS.size, C)
+    np.testing.assert_allclose(d2, ref, rtol=1e-8)

@@ -46,6 +46,24 @@ def test_the_real_kernels_have_cache_files_of_their_own():
     assert all(d._cache._cache_file._index_path.endswith(".nbi") for d in ds)
 
 
+def test_a_kernel_without_a_cache_is_not_a_cached_kernel(monkeypatch):
+    """An ``@njit`` of a kernel module without ``cache=True`` (Numba's ``NullCache``, no index file) is left out, and
+    does not break ``kernels_cached`` (which every compiled run calls)."""
+    from numba import njit
+
+    from stereopose_mc.core.kernels import gate
+
+    def _helper(a):
+        return a
+
+    _helper.__module__ = gate.__name__
+    uncached = njit(_helper)
+    monkeypatch.setattr(gate, "_uncached_helper", uncached, raising=False)
+    ds = warm.dispatchers()
+    assert uncached not in ds and gate.innovation_blocks_batch in ds
+    assert warm.kernels_cached() in (True, False)
+
+
 @pytest.mark.parametrize("cold", [True, False])
 def test_a_compiled_run_says_when_it_compiles(tmp_path, monkeypatch, cold):
     from scenarios import write_scenario

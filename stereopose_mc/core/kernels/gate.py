@@ -1,4 +1,4 @@
-"""Compiled innovation-covariance blocks of the per-feature gate, from the row-sparse ``H``.
+"""Compiled innovation-covariance blocks and distances of the per-feature gate, from the row-sparse ``H``.
 
 The twin of ``filters.gating.linearized_blocks`` (which takes the dense ``H``): for each trial and each of the
 first ``F`` features, the ``C x C`` block
@@ -18,9 +18,14 @@ of the points' columns: ``aligned.virtual_rows``); ``P`` is then read through th
     P[n + a, j] = sum_p P[E_POINTS + 3 p + a, j],   P[n + a, n + b] = sum_p P[n + a, E_POINTS + 3 p + b],
 
 a copy of ``P`` with these rows and columns formed once per trial. Padding entries (value 0) add nothing.
+
+The gate's distance of each block, ``d_f^2 = nu_f^T S_f^-1 nu_f`` (``filters.gating.distances2``, by LU there), comes
+from the block's own Cholesky factor while it is in cache.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -58,23 +63,54 @@ def _augmented(P, Pa):
             Pa[n + a, n + c] = s
 
 
+@njit(inline="always", **_JIT)
+def _distance2(S, b, f, nu, r0, Lc, w):
+    """``nu_f^T S_f^-1 nu_f`` of block ``S[b, f]`` and the rows ``r0 ..`` of ``nu[b]``, by the Cholesky factor ``Lc``
+    of ``S_f`` (``S_f = Lc Lc^T``, ``w = Lc^-1 nu_f``, ``d^2 = |w|^2``); NaN where ``S_f`` is not positive definite."""
+    C = Lc.shape[0]
+    for i in range(C):
+        for j in range(i + 1):
+            s = S[b, f, i, j]
+            for q in range(j):
+                s -= Lc[i, q] * Lc[j, q]
+            if i == j:
+                if not s > 0.0:  # (also a NaN)
+                    return np.nan
+                Lc[i, i] = math.sqrt(s)
+            else:
+                Lc[i, j] = s / Lc[j, j]
+    d2 = 0.0
+    for i in range(C):
+        s = nu[b, r0 + i]
+        for q in range(i):
+            s -= Lc[i, q] * w[q]
+        w[i] = s / Lc[i, i]
+        d2 += w[i] * w[i]
+    return d2
+
+
 @njit(**_JIT)
-def innovation_blocks_batch(Hval, cols, P, R, n_features, channels, virtual):
-    """``S (B, F, C, C)``: ``S_f = H_f P H_f^T + R_f`` of the first ``F C`` rows (module docstring).
+def innovation_blocks_batch(Hval, cols, P, R, nu, n_features, channels, virtual):
+    """``(S (B, F, C, C), d2 (B, F))``: ``S_f = H_f P H_f^T + R_f`` of the first ``F C`` rows (module docstring) and
+    the gate's squared Mahalanobis distances ``d_f^2 = nu_f^T S_f^-1 nu_f`` (NaN where ``S_f`` is not positive
+    definite: ``filters.compiled.gate_distances`` gives those to ``gating.distances2``, as before this kernel).
 
     ``Hval (B, m, k)`` the values of the row-sparse ``H`` at columns ``cols (m, k)`` (each feature's ``C`` rows with
-    the same columns: ``filters.compiled.gate_blocks`` checks it), ``P (B, n, n)``, ``R (B, m)`` the diagonal
-    measurement variances; ``virtual``: columns ``n .. n + 2`` are the aligned chart's point sums (``P`` read
-    through its copy with them, ``_augmented``). Per feature, ``P[c, c]`` gathered once for its ``C`` rows, then
-    ``T = V_f P[c, c]`` over each row's non-zero values and ``S_f = T V_f^T + R_f``, each block exactly symmetric
-    (its lower triangle summed, then mirrored).
+    the same columns: ``filters.compiled._constants`` checks it), ``P (B, n, n)``, ``R (B, m)`` the diagonal
+    measurement variances, ``nu (B, m)`` the innovations; ``virtual``: columns ``n .. n + 2`` are the aligned
+    chart's point sums (``P`` read through its copy with them, ``_augmented``). Per feature, ``P[c, c]`` gathered
+    once for its ``C`` rows, then ``T = V_f P[c, c]`` over each row's non-zero values and ``S_f = T V_f^T + R_f``,
+    each block exactly symmetric (its lower triangle summed, then mirrored).
     """
     B, n = P.shape[0], P.shape[1]
     F, C, k = n_features, channels, cols.shape[1]
     S = np.empty((B, F, C, C))
+    d2 = np.empty((B, F))
     Pa = np.empty((n + VEC, n + VEC) if virtual else (0, 0))
     Pf = np.empty((k, k))
     T = np.empty((C, k))
+    Lc = np.empty((C, C))
+    w = np.empty(C)
     for b in range(B):
         if virtual:
             _augmented(P[b], Pa)
@@ -101,4 +137,5 @@ def innovation_blocks_batch(Hval, cols, P, R, n_features, channels, virtual):
                     S[b, f, c, d] = s
                     S[b, f, d, c] = s
                 S[b, f, c, c] += R[b, r0 + c]
-    return S
+            d2[b, f] = _distance2(S, b, f, nu, r0, Lc, w)
+    return S, d2
