@@ -12,7 +12,7 @@ cache, ``cache=True``). One idea per module:
   whitened ``A`` factorized in reverse order and ``P+ = L A^-1 L^T`` with its square root;
 - ``update``: the EKF and IEKF update loop in any of the three charts (which, given the truth, evaluates each
   posterior's NEES as it forms it); ``consistency``: the per-step NEES and errors; ``gate``: the gate's per-feature
-  innovation covariance blocks from the row-sparse ``H``.
+  innovation covariance blocks from the row-sparse ``H``, and their distances.
 
 The state's offsets come from ``core.layout``. ``_cache`` keys Numba's cache by the whole package's source and
 the core modules it imports; ``_blas`` loads SciPy's BLAS tables for Numba without ``scipy.linalg``;
