@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from ..layout import E_POINTS, VEC, e_n_points
+from .aligned import virtual_rows
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
@@ -39,23 +40,17 @@ _e_n_points = njit(inline="always", error_model="numpy")(e_n_points)
 @njit(**_JIT)
 def _augmented(P, Pa):
     """``Pa (n + 3, n + 3)``: ``P`` with the aligned chart's virtual rows and columns (the point sums),
-    ``Pa[n + a, j] = sum_p P[E_POINTS + 3 p + a, j]``, ``Pa[n + a, n + c] = sum_p Pa[n + a, E_POINTS + 3 p + c]``."""
+    ``Pa[n + a, j] = sum_p P[E_POINTS + 3 p + a, j]`` (``aligned.virtual_rows``), mirrored onto the columns, and
+    ``Pa[n + a, n + c] = sum_p Pa[n + a, E_POINTS + 3 p + c]``."""
     n = P.shape[0]
     N = _e_n_points(n)
     for i in range(n):
         for j in range(n):
             Pa[i, j] = P[i, j]
+    virtual_rows(P, Pa)
     for a in range(VEC):
-        v = n + a
         for j in range(n):
-            Pa[v, j] = 0.0
-        for p in range(N):
-            r = E_POINTS + VEC * p + a
-            for j in range(n):
-                Pa[v, j] += P[r, j]
-        for j in range(n):
-            Pa[j, v] = Pa[v, j]
-    for a in range(VEC):
+            Pa[j, n + a] = Pa[n + a, j]
         for c in range(VEC):
             s = 0.0
             for p in range(N):
