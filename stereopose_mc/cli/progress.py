@@ -47,6 +47,25 @@ class _Plain:
               file=sys.stderr, flush=True)  # fmt: skip
 
 
+def bar_columns(label: str) -> list:
+    """The rich bar's columns: the label, the bar, ``done/total trials``, the rate, ``ETA``, the remaining and elapsed
+    times, ``lost iekf 1, ekf 3``. The counts, times and lost counts keep their whole text; on a narrow terminal
+    (80 columns, a sweep point's long label) the label is cut with an ellipsis and the bar shrinks instead."""
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.table import Column
+
+    def whole() -> Column:
+        return Column(no_wrap=True)
+
+    cut = Column(no_wrap=True, overflow="ellipsis", ratio=1, min_width=min(8, len(label)))  # the label: a third of
+    return [TextColumn(f"[bold]{label}", table_column=cut),  # the width the whole-text columns leave, the bar the rest
+            BarColumn(bar_width=None, table_column=Column(ratio=2, min_width=5)),
+            MofNCompleteColumn(table_column=whole()), TextColumn("trials", table_column=whole()),
+            TextColumn("{task.fields[rate]}", table_column=whole()), TextColumn("ETA", table_column=whole()),
+            TimeRemainingColumn(table_column=whole()), TimeElapsedColumn(table_column=whole()),
+            TextColumn("lost {task.fields[div]}", table_column=whole())]  # fmt: skip
+
+
 @contextmanager
 def progress_reporter(label: str, quiet: bool = False) -> Iterator:
     """Yield a ``progress(done, total, diverged)`` callable for the engine."""
@@ -54,17 +73,13 @@ def progress_reporter(label: str, quiet: bool = False) -> Iterator:
         yield None
         return
     from rich.console import Console  # here, not at import: a --quiet run never loads rich
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)  # fmt: skip
+    from rich.progress import Progress
 
     console = Console(stderr=True)
     if not console.is_terminal:
         yield _Plain(label)
         return
-    cols = [TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(), TextColumn("trials"),
-            TextColumn("{task.fields[rate]}"), TextColumn("ETA"), TimeRemainingColumn(), TimeElapsedColumn(),
-            TextColumn("lost {task.fields[div]}")]  # fmt: skip
-    with Progress(*cols, console=console, transient=False) as bar:
+    with Progress(*bar_columns(label), console=console, transient=False, expand=True) as bar:
         task = bar.add_task(label, total=None, rate="", div="")
         t0 = time.perf_counter()
         first: list[int] = []

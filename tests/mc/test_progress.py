@@ -117,3 +117,28 @@ def test_the_ticker_counts_the_trials_lost_by_chunks_in_flight_once():
             t.report()
             assert calls[-1][2] == {"ekf": 9, "iekf": 1}
             t.diverged.clear()
+
+
+@pytest.mark.parametrize("width", [80, 132])
+def test_the_bar_keeps_the_counts_eta_and_lost_whole_on_a_narrow_terminal(width):
+    """A sweep point's label is long; at 80 columns the label is cut and the bar shrinks, never the counts."""
+    import io
+
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from stereopose_mc.cli.progress import bar_columns
+
+    label = "p000-baseline_m=0.5"
+    buf = io.StringIO()
+    console = Console(file=buf, width=width, force_terminal=True, color_system=None)
+    bar = Progress(*bar_columns(label), console=console, auto_refresh=False, expand=True)
+    task = bar.add_task(label, total=200, rate="51.0/s", div="iekf 0, ekf 41")
+    bar.update(task, completed=135)
+    console.print(bar.make_tasks_table(bar.tasks))
+    line = buf.getvalue().rstrip("\n")
+    assert "\n" not in line and len(line) <= width
+    for whole in ("135/200 trials", "51.0/s", "ETA -:--:--", "lost iekf 0, ekf 41"):
+        assert whole in line
+    assert (label in line) == (width >= 132)  # cut with an ellipsis at 80 columns, whole at 132
+    assert "━" in line  # some bar is left
