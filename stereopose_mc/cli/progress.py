@@ -14,6 +14,25 @@ def diverged_text(diverged: dict[str, int]) -> str:
     return ", ".join(f"{k} {v}" for k, v in diverged.items()) or "0"
 
 
+def duration_text(seconds: float) -> str:
+    """``48 s``, ``1 min 48 s``, ``2 h 05 min`` (whole seconds; minutes past an hour)."""
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+def budget_eta_text(elapsed_s: float, done: int, budget: int) -> str:
+    """``12 s elapsed, at most 1 min 48 s left``: the mean time of the ``done`` steps of a search with a ``budget``
+    of steps times those left (at most: the search may end sooner); only the elapsed time once the budget is spent."""
+    text = f"{duration_text(elapsed_s)} elapsed"
+    if 0 < done < budget:
+        text += f", at most {duration_text(elapsed_s / done * (budget - done))} left"
+    return text
+
+
 class _Plain:
     """Lines like ``caseB: 300/1000 trials (30%), 12.1 trials/s, ETA 58 s, lost iekf 1, ekf 3``."""
 

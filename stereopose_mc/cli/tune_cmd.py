@@ -35,13 +35,19 @@ def tune(
     Every evaluation runs the trials `spmc run --trials N+M` runs (dispersions, truth model, faults, gating, \
 the measurement-based start); docs/filters.md, `spmc tune`.
     """
+    import time
+
     from .. import api
+    from .progress import budget_eta_text
+
+    t0 = time.perf_counter()
 
     def progress(i: int, ev, what: str) -> None:
         if not quiet:
             typer.echo(f"[{i}/{max_evaluations}] {what}: cost {ev.cost:.3g}, NEES/dof gauge "
                        f"{ev.nees.get('nees_gauge', float('nan')):.3g}, NIS/dof {ev.nis:.3g}, "
-                       f"lost {ev.lost}/{ev.trials}", err=True)  # fmt: skip
+                       f"lost {ev.lost}/{ev.trials}; "
+                       f"{budget_eta_text(time.perf_counter() - t0, i, max_evaluations)}", err=True)  # fmt: skip
 
     try:
         res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,
