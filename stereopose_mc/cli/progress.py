@@ -24,12 +24,15 @@ def duration_text(seconds: float) -> str:
     return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
-def budget_eta_text(elapsed_s: float, done: int, budget: int) -> str:
-    """``12 s elapsed, at most 1 min 48 s left``: the mean time of the ``done`` steps of a search with a ``budget``
-    of steps times those left (at most: the search may end sooner); only the elapsed time once the budget is spent."""
+def eta_text(elapsed_s: float, done: int, total: int, at_most: bool = False) -> str:
+    """``12 s elapsed, about 1 min 48 s left``: the mean time of the ``done`` steps (of ``total``) times the steps
+    left; ``at_most``: ``at most`` (a search that may end before its budget); only the elapsed time once all are
+    done, and nothing before the first."""
+    if done <= 0:
+        return ""
     text = f"{duration_text(elapsed_s)} elapsed"
-    if 0 < done < budget:
-        text += f", at most {duration_text(elapsed_s / done * (budget - done))} left"
+    if done < total:
+        text += f", {'at most' if at_most else 'about'} {duration_text(elapsed_s / done * (total - done))} left"
     return text
 
 

@@ -30,14 +30,24 @@ def sweep(
     Writes DIR/sweep.json, one run directory per point, DIR/percentiles.csv (all points;
     `spmc compare` takes two sweeps) and the sweep report (DIR/report.html, sweep.csv).
     """
+    import time
+
     from .. import api
-    from .progress import progress_reporter
+    from .progress import eta_text, progress_reporter
+
+    started: list[float] = []  # when each point that runs (or resumes) started
 
     def on_point(i, n, p, what):
         if not quiet:
             vals = ", ".join(f"{k}={v}" for k, v in p.values.items())
-            typer.echo(f"[{i + 1}/{n}] {p.name} ({vals}): " + {"done": "finished, skipped", "run": "running",
-                                                                "resume": "resuming"}[what])  # fmt: skip
+            line = f"[{i + 1}/{n}] {p.name} ({vals}): " + {"done": "finished, skipped", "run": "running",
+                                                           "resume": "resuming"}[what]  # fmt: skip
+            if what != "done":  # the sweep's time so far and, from the second point run, the rest at the same pace
+                now = time.perf_counter()
+                started.append(now)
+                eta = eta_text(now - started[0], len(started) - 1, len(started) - 1 + n - i)
+                line += f"; sweep: {eta}" if eta else ""
+            typer.echo(line)
 
     try:
         res = api.sweep(scenario, sets, out=out, zip=zipped, trials=trials, jobs=jobs, chunk_size=chunk_size,

@@ -38,7 +38,7 @@ the measurement-based start); docs/filters.md, `spmc tune`.
     import time
 
     from .. import api
-    from .progress import budget_eta_text
+    from .progress import eta_text
 
     t0 = time.perf_counter()
 
@@ -47,7 +47,7 @@ the measurement-based start); docs/filters.md, `spmc tune`.
             typer.echo(f"[{i}/{max_evaluations}] {what}: cost {ev.cost:.3g}, NEES/dof gauge "
                        f"{ev.nees.get('nees_gauge', float('nan')):.3g}, NIS/dof {ev.nis:.3g}, "
                        f"lost {ev.lost}/{ev.trials}; "
-                       f"{budget_eta_text(time.perf_counter() - t0, i, max_evaluations)}", err=True)  # fmt: skip
+                       f"{eta_text(time.perf_counter() - t0, i, max_evaluations, at_most=True)}", err=True)  # fmt: skip
 
     try:
         res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,

@@ -144,10 +144,11 @@ def test_the_bar_keeps_the_counts_eta_and_lost_whole_on_a_narrow_terminal(width)
     assert "━" in line  # some bar is left
 
 
-def test_the_tune_eta_is_the_mean_evaluation_times_those_left_of_the_budget():
-    from stereopose_mc.cli.progress import budget_eta_text, duration_text
+def test_the_eta_of_tune_and_sweep_is_the_mean_step_times_the_steps_left():
+    from stereopose_mc.cli.progress import duration_text, eta_text
 
-    assert budget_eta_text(12.0, 4, 40) == "12 s elapsed, at most 1 min 48 s left"  # 12 / 4 x 36 = 108 s
-    assert budget_eta_text(0.4, 1, 2) == "0 s elapsed, at most 0 s left"
-    assert budget_eta_text(75.0, 40, 40) == "1 min 15 s elapsed"  # the budget spent: no estimate
+    assert eta_text(12.0, 4, 40, at_most=True) == "12 s elapsed, at most 1 min 48 s left"  # 12 / 4 x 36 = 108 s
+    assert eta_text(40.0, 1, 9) == "40 s elapsed, about 5 min 20 s left"  # a sweep: 8 points of 40 s left
+    assert eta_text(75.0, 40, 40, at_most=True) == "1 min 15 s elapsed"  # all done: no estimate
+    assert eta_text(3.0, 0, 9) == ""  # nothing done yet: nothing to say
     assert duration_text(3600 + 5 * 60 + 29) == "1 h 05 min" and duration_text(59.6) == "1 min 00 s"

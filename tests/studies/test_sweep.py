@@ -102,3 +102,15 @@ def test_sweep_points_run_the_compiled_kernels_by_default_and_numpy_on_request(g
     assert r.exit_code == 0, r.output
     (point,) = json.loads((tmp_path / "np" / "sweep.json").read_text())["points"]
     assert json.loads((tmp_path / "np" / point["name"] / "manifest.json").read_text())["backend"]["kernels"] == "numpy"
+
+
+def test_each_point_after_the_first_says_the_sweeps_time_and_the_rest_at_that_pace(grid, tmp_path):
+    _, cfg = grid
+    r = CliRunner().invoke(app, ["sweep", str(cfg), "--set", "camera.baseline_m=0.5,1.0,2.0", "--trials", "2",
+                                 "--out", str(tmp_path / "eta"), "--no-report", "--timeseries", "none"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.startswith("[")]
+    assert [ln.split("]")[0] for ln in lines] == ["[1/3", "[2/3", "[3/3"]
+    assert lines[0].endswith(": running")  # nothing measured yet
+    assert "; sweep: " in lines[1] and " elapsed, about " in lines[1] and lines[1].endswith(" left")
+    assert "; sweep: " in lines[2] and " elapsed, about " in lines[2]
