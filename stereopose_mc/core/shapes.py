@@ -158,19 +158,33 @@ def ray_ellipsoid(p: Array, d: Array, axes: Array) -> tuple[Array, Array]:
     return t1, t2
 
 
+def _cross(a: tuple, b: tuple) -> tuple:
+    """``a x b`` of vectors given by their components (arrays that broadcast): ``np.cross``'s products and
+    differences, without its stacking and copies of the operands."""
+    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+
+
+def _dot(a: tuple, b: tuple) -> Array:
+    """``a . b`` by components, summed in ``np.sum(..., -1)``'s order over 3 entries."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def ray_triangles(p: Array, d: Array, tri: Array) -> Array:
-    """Ray parameters ``t (..., M)`` where ``p + t d`` meets each triangle (``nan``: a miss)."""
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    pv = np.cross(d[..., None, :], e2)
-    det = np.sum(e1 * pv, -1)
+    """Ray parameters ``t (..., M)`` where ``p + t d`` meets each triangle (``nan``: a miss): Moller-Trumbore, by
+    components (rays on the leading axes, triangles on the last)."""
+    v0 = tuple(tri[:, 0, k] for k in range(3))
+    e1 = tuple(tri[:, 1, k] - tri[:, 0, k] for k in range(3))
+    e2 = tuple(tri[:, 2, k] - tri[:, 0, k] for k in range(3))
+    dc = tuple(d[..., None, k] for k in range(3))
+    pv = _cross(dc, e2)
+    det = _dot(e1, pv)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / det
-        s = p[..., None, :] - tri[:, 0]
-        u = np.sum(s * pv, -1) * inv
-        qv = np.cross(s, e1)
-        v = np.sum(d[..., None, :] * qv, -1) * inv
-        t = np.sum(e2 * qv, -1) * inv
+        s = tuple(p[..., None, k] - v0[k] for k in range(3))
+        u = _dot(s, pv) * inv
+        qv = _cross(s, e1)
+        v = _dot(dc, qv) * inv
+        t = _dot(e2, qv) * inv
         hit = (np.abs(det) > 1e-300) & (u >= 0) & (v >= 0) & (u + v <= 1)
     return np.where(hit, t, np.nan)
 
@@ -193,7 +207,19 @@ def segment_blocked(shape: Shape, p: Array, c: Array, eps: float = EPS) -> Array
     return out.reshape(shp)
 
 
-def sees(shape: Shape, p: Array, n: Array, c: Array, eps: float = EPS) -> Array:
-    """``(...)`` bool: point ``p`` with outward normal ``n`` faces ``c`` and nothing of the body is in between."""
-    facing = np.sum(n * (c - p), axis=-1) > 0.0
-    return facing & ~segment_blocked(shape, p, c, eps)
+def sees(shape: Shape, p: Array, n: Array, c: Array, eps: float = EPS, where: Array | None = None) -> Array:
+    """``(...)`` bool: point ``p`` with outward normal ``n`` faces ``c`` and nothing of the body is in between.
+
+    ``where`` (``(...)`` bool, or None: everywhere): False gives False without a ray test, i.e. ``where & sees(...)``.
+    Only the segments of points that face ``c`` (and are in ``where``) are tested against the body: the others'
+    answer is False whatever the test says (a back face, or a point already hidden from another camera).
+    """
+    p, c, n = np.broadcast_arrays(np.asarray(p, dtype=float), np.asarray(c, dtype=float), np.asarray(n, dtype=float))
+    out = np.asarray(np.sum(n * (c - p), axis=-1) > 0.0)  # (an array also for one point: written below)
+    if where is not None:
+        out &= where
+    flat = out.reshape(-1)  # (a view: ``out`` is a new array)
+    todo = np.flatnonzero(flat)
+    if todo.size:
+        flat[todo] = ~segment_blocked(shape, p.reshape(-1, 3)[todo], c.reshape(-1, 3)[todo], eps)
+    return out

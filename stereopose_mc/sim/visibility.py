@@ -48,11 +48,12 @@ def body_visibility(setup: Setup, x: Array) -> Array:
     def to_body(v):  # L-frame vectors (..., 3) -> T components, broadcast over the features
         return np.einsum("...ji,...j->...i", D, v)[..., None, :]
 
+    # each test only where the tests before it passed (shapes.sees' ``where``: the same booleans, fewer ray tests)
     if sensor.occlusion:
         rho = x[..., st.RHO]
         for c in (np.zeros(3), np.array([setup.baseline, 0.0, 0.0])):
-            ok &= shapes.sees(shape, P, n, to_body(c - rho))
+            ok = shapes.sees(shape, P, n, to_body(c - rho), where=ok)
     if sensor.sun is not None:
         s = to_body(np.broadcast_to(sensor.sun, x.shape[:-1] + (3,)))
-        ok &= shapes.sees(shape, P, n, P + shape.extent * s)
+        ok = shapes.sees(shape, P, n, P + shape.extent * s, where=ok)
     return ok

@@ -70,6 +70,48 @@ def test_box_side_face_seen_at_grazing_angles():
     assert not shapes.sees(s, p, n, np.array([-5.0, 10.0, 0.0]))  # camera on the -x side: back face
 
 
+def test_ray_triangles_by_hand():
+    """Moller-Trumbore on two triangles, by hand: the unit right triangle in z = 0 and the same lifted to z = 1."""
+    tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+                    [[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]]])  # fmt: skip
+    p = np.array([[[0.2, 0.2, 2.0], [0.9, 0.9, 2.0]], [[0.2, 0.2, 0.5], [0.2, 0.2, 2.0]]])  # (2, 2, 3) rays
+    d = np.array([[[0.0, 0.0, -2.0], [0.0, 0.0, -2.0]], [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]])
+    t = shapes.ray_triangles(p, d, tri)
+    assert t.shape == (2, 2, 2)
+    np.testing.assert_allclose(t[0, 0], [1.0, 0.5], rtol=0, atol=1e-15)  # down through both planes
+    assert np.isnan(t[0, 1]).all()  # x + y = 1.8 > 1: outside both
+    np.testing.assert_allclose(t[1, 0], [-0.5, 0.5], rtol=0, atol=1e-15)  # up from z = 0.5: behind (t < 0) and ahead
+    assert np.isnan(t[1, 1]).all()  # parallel to both planes
+
+
+def _two_boxes():
+    """A mesh that is not convex: the bundled box mesh twice, side by side along x (each hides part of the other)."""
+    m = read_mesh(CONFIGS / "meshes" / "box.obj")
+    v = np.concatenate([m.vertices - [1.5, 0.0, 0.0], m.vertices + [1.5, 0.0, 0.0]])
+    return shapes.mesh(v, np.concatenate([m.faces, m.faces + len(m.vertices)]))
+
+
+@pytest.mark.parametrize("kind", ["box", "ellipsoid", "mesh", "two boxes"])
+def test_sees_tests_only_the_facing_points_in_where_and_gives_the_definition(kind):
+    """``sees(where=w)`` is ``w & facing & ~segment_blocked`` entry by entry (the definition, evaluated here on every
+    segment), on surface points seen from cameras all around the body, batched as ``(steps, N)``."""
+    s = {"box": shapes.box([2.0, 1.0, 0.5]), "ellipsoid": shapes.ellipsoid([2.0, 1.0, 0.5]), "mesh": box_mesh(),
+         "two boxes": _two_boxes()}[kind]  # fmt: skip
+    rng = np.random.default_rng(7)
+    p, n = shapes.sample_surface(s, 24, rng)
+    cams = rng.normal(size=(40, 1, 3)) * 6.0  # (steps, 1, 3): one camera per step, broadcast over the points
+    where = rng.random((40, 24)) < 0.7
+    facing = np.sum(n * (cams - p), axis=-1) > 0.0
+    blocked = shapes.segment_blocked(s, np.broadcast_to(p, (40, 24, 3)), np.broadcast_to(cams, (40, 24, 3)))
+    assert (facing & ~blocked).any() and (~facing & blocked).any()  # seen points, and back faces the body hides
+    if kind == "two boxes":  # a face turned to the camera with the other box in between
+        assert (facing & blocked).any()
+    np.testing.assert_array_equal(shapes.sees(s, p, n, cams, where=where), where & facing & ~blocked)
+    np.testing.assert_array_equal(shapes.sees(s, p, n, cams), facing & ~blocked)
+    one = shapes.sees(s, p[0], n[0], cams[0, 0])  # one point: a 0-d answer, the same
+    assert one.shape == () and bool(one) == bool(facing[0, 0] & ~blocked[0, 0])
+
+
 @pytest.mark.parametrize("kind", ["box", "ellipsoid", "mesh"])
 def test_samples_lie_on_the_surface_with_outward_normals(kind):
     s = {"box": shapes.box([2.0, 1.0, 0.5]), "ellipsoid": shapes.ellipsoid([2.0, 1.0, 0.5])}.get(kind) or box_mesh()
