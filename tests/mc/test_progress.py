@@ -132,7 +132,7 @@ def test_the_bar_keeps_the_counts_eta_and_lost_whole_on_a_narrow_terminal(width)
     label = "p000-baseline_m=0.5"
     buf = io.StringIO()
     console = Console(file=buf, width=width, force_terminal=True, color_system=None)
-    bar = Progress(*bar_columns(label), console=console, auto_refresh=False, expand=True)
+    bar = Progress(*bar_columns(label, width), console=console, auto_refresh=False)
     task = bar.add_task(label, total=200, rate="51.0/s", div="iekf 0, ekf 41")
     bar.update(task, completed=135)
     console.print(bar.make_tasks_table(bar.tasks))
