@@ -35,7 +35,7 @@ def sweep(
     from .. import api
     from .progress import eta_text, progress_reporter
 
-    started: list[float] = []  # when each point that runs (or resumes) started
+    ran = {"points": 0, "t0": 0.0}  # the points that ran (or resumed) so far, and when the first started
 
     def on_point(i, n, p, what):
         if not quiet:
@@ -44,8 +44,10 @@ def sweep(
                                                            "resume": "resuming"}[what]  # fmt: skip
             if what != "done":  # the sweep's time so far and, from the second point run, the rest at the same pace
                 now = time.perf_counter()
-                started.append(now)
-                eta = eta_text(now - started[0], len(started) - 1, len(started) - 1 + n - i)
+                if not ran["points"]:
+                    ran["t0"] = now
+                eta = eta_text(now - ran["t0"], ran["points"], ran["points"] + n - i)
+                ran["points"] += 1
                 line += f"; sweep: {eta}" if eta else ""
             typer.echo(line)
 
