@@ -14,7 +14,7 @@ from ..config.schema import Scenario
 from ..mc import engine
 from ..rundir.store import RunDirError
 from .errors import SpmcError
-from .runs import KERNELS, Run, _options
+from .runs import KERNELS, Run, _options, default_jobs
 from .scenarios import _sweep, as_scenario
 
 if TYPE_CHECKING:  # imported where used: studies.sweep and studies.tuning import pandas (~0.25 s)
@@ -165,7 +165,7 @@ def _kernels(kernels: str | None) -> str:
 def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, trials: int = 30,
          max_evaluations: int = 40, out: str | Path | None = None, kernels: str | None = None,
          space: str | Sequence[str] = "q", check_trials: int | None = None,
-         progress: Callable[[int, tuning.Evaluation, str], None] | None = None) -> Tuning:  # fmt: skip
+         progress: Callable[[int, tuning.Evaluation, str], None] | None = None, jobs: int | None = None) -> Tuning:  # fmt: skip
     """Tune the filter labelled ``filter`` (its Q blocks; with ``space`` also its R and the scenario's P0:
     ``"q,r,p0"``) so its NEES and NIS are consistent, on the trials ``spmc run`` would run.
 
@@ -173,7 +173,8 @@ def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, tr
     of them; the start and the result are then compared on ``check_trials`` held-back trials
     (default ``trials``; trial indices ``trials … trials+check_trials-1``; 0: none) (docs/filters.md,
     ``spmc tune``). ``out``: also write the tuned entry there as YAML. ``progress(i, evaluation, what)``
-    is called after each evaluation. ``kernels``: as :func:`run`'s (default ``compiled``).
+    is called after each evaluation. ``kernels``, ``jobs``: as :func:`run`'s (default ``compiled``, the cores
+    available: each evaluation's trials in chunks over them; the same results for any ``jobs``).
     """
     from ..studies import tuning
 
@@ -182,12 +183,15 @@ def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, tr
         raise SpmcError("--trials must be at least 2")
     if max_evaluations < 1:
         raise SpmcError("--max-evaluations must be at least 1")
+    if jobs is not None and jobs < 1:
+        raise SpmcError(f"--jobs must be at least 1 (got {jobs})")
     out = None if out is None else Path(out)
     if out is not None and (out.is_dir() or not out.parent.exists()):
         raise SpmcError(f"{out}: --out must be a file in an existing directory")
     try:
         res = tuning.tune(scn, filter, trials, max_evaluations, progress=progress, kernels=_kernels(kernels),
-                          space=space, check_trials=check_trials)  # fmt: skip
+                          space=space, check_trials=check_trials,
+                          jobs=default_jobs() if jobs is None else jobs)  # fmt: skip
     except tuning.TuneError as exc:
         where = scn.name if isinstance(scenario, (Scenario, Mapping)) else str(scenario)
         raise SpmcError(f"{where}: {exc}") from None

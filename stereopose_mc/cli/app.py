@@ -16,7 +16,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 
 
 JOBS_HELP = "parallel workers (default: the cores available to this process)"
-CHUNK_HELP = "trials stepped together per chunk (default: the trials split over the jobs, 32-250; numpy: 50)"
+CHUNK_HELP = ("trials stepped together per chunk (default: the trials split over the jobs, at most 250, at least 32 at "
+              "case B's state size and fewer for larger states; numpy: 50)")
 KERNELS_HELP = ("compiled (default: Numba) | numpy (the readable reference; the same results to round-off: "
                 "docs/performance.md)")
 

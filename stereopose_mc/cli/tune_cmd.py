@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from .app import KERNELS_HELP, app, fail
+from .app import JOBS_HELP, KERNELS_HELP, app, fail
 
 
 @app.command()
@@ -28,6 +28,7 @@ def tune(
     ),
     max_evaluations: int = typer.Option(40, "--max-evaluations", help="budget of Monte Carlo evaluations"),
     kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP),
+    jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1, help=JOBS_HELP),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress output"),
 ) -> None:
     """Tune one filter's Q (and R, P0) so its NEES and NIS are consistent, then check on held-back trials.
@@ -51,7 +52,8 @@ the measurement-based start); docs/filters.md, `spmc tune`.
 
     try:
         res = api.tune(scenario, filter_label, trials=trials, max_evaluations=max_evaluations, out=out,
-                       kernels=kernels, space=space, check_trials=check_trials, progress=progress)  # fmt: skip
+                       kernels=kernels, space=space, check_trials=check_trials, progress=progress,
+                       jobs=jobs)  # fmt: skip
     except api.SpmcError as exc:
         fail(exc.lines)
     fmt = lambda v: f"{v:.0f}" if float(v).is_integer() and abs(v) < 1e6 else f"{v:.3g}"  # noqa: E731 (counts)

@@ -27,6 +27,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 import os
 import sys
 import threading
@@ -319,24 +320,51 @@ def compute_chunk_in_worker(driver_pid: int | None, scenario_json: str, trials: 
 
 
 AUTO_CHUNK_MAX = 250  # compiled kernels: trials per chunk at most (memory ~ chunk x steps x n^2)
-AUTO_CHUNK_MIN = 32  # compiled kernels: trials per chunk at least (smaller chunks run faster in one thread)
+AUTO_CHUNK_MIN = 32  # compiled kernels: trials per chunk at least, at a state of AUTO_CHUNK_MIN_N (min_chunk)
+AUTO_CHUNK_MIN_N = 30  # case B's state (5 features), where AUTO_CHUNK_MIN was measured
 
 
-def auto_chunk_size(opts: RunOptions, n_trials: int) -> int:
-    """The chunk size when ``--chunk-size`` is not given.
+def min_chunk(n: int) -> int:
+    """The fewest trials worth a chunk (a thread) of their own, for a state of length ``n``.
+
+    ``AUTO_CHUNK_MIN`` at ``AUTO_CHUNK_MIN_N`` (case B: below it the per-step Python work, which holds the GIL,
+    outweighs the kernels' time, and two threads take longer than one; measured: 2-16 trials of case B, 0.1-0.4 s
+    more with 2 threads than inline, 30 trials in chunks of 15 ~0.25 s more), fewer for larger states in proportion
+    to ``(AUTO_CHUNK_MIN_N / n)^2`` (a trial-step's kernels grow as ``n^2`` to ``n^3``, its Python work hardly:
+    configs/mission-realistic.yaml, ``n = 87``, 30 trials of ``spmc run``: 4.2-5.0 s inline, 3.4-3.8 s in two chunks
+    on two threads), and at least 2.
+    """
+    return max(2, math.ceil(AUTO_CHUNK_MIN * (AUTO_CHUNK_MIN_N / max(n, 1)) ** 2))
+
+
+def auto_chunk_size(opts: RunOptions, n_trials: int, n: int = AUTO_CHUNK_MIN_N) -> int:
+    """The chunk size when ``--chunk-size`` is not given (``n``: the scenario's state length).
 
     numpy kernels: 50 (as before). Compiled kernels: the trials split evenly over the
     jobs, at most ``AUTO_CHUNK_MAX``: the per-step Python work and the per-chunk tables
     and files (which hold the GIL) are then paid as few times as possible; and at least
-    ``AUTO_CHUNK_MIN`` (or all the trials, if fewer): below that the per-step Python work,
-    which holds the GIL, outweighs the kernels' time, and two threads take longer than
-    one (measured: 2-16 trials of case B, 0.1-0.4 s more with 2 threads than inline).
-    A run of one chunk runs inline (``local_backend``). Results do not depend on the chunk size.
+    ``min_chunk(n)`` (or all the trials, if fewer). A run of one chunk runs inline
+    (``local_backend``). Results do not depend on the chunk size.
     """
     if opts.kernels != "compiled":
         return 50
     share = -(-n_trials // max(1, opts.jobs))
-    return int(max(1, min(AUTO_CHUNK_MAX, max(share, min(n_trials, AUTO_CHUNK_MIN)))))
+    return int(max(1, min(AUTO_CHUNK_MAX, max(share, min(n_trials, min_chunk(n))))))
+
+
+def state_length(scn: Scenario) -> int:
+    """The length of the filters' state in ``scn`` (its features, or its feature slots)."""
+    return n_state(feature_count(scn))
+
+
+def compute_chunks(scn: Scenario, trials: np.ndarray, opts: RunOptions) -> list[ChunkOutput]:
+    """The trials ``trials`` of ``scn`` as a run computes them (its chunks, ``opts.jobs`` threads or processes as
+    ``local_backend`` picks them), in the order of ``trials``; nothing written, no progress (a study's evaluations:
+    ``studies.tuning``). The same results for any ``jobs``, chunk size or backend."""
+    todo = np.asarray(trials, dtype=np.int64)
+    chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size, state_length(scn)))
+    outs = list(_iterate(scn.model_dump_json(), chunks, opts))
+    return sorted(outs, key=lambda co: int(co.trials[0]))
 
 
 def local_backend(opts: RunOptions, n_chunks: int, images: bool = False) -> str:
@@ -583,7 +611,7 @@ def _new_run_dir(scn: Scenario, out: Path, opts: RunOptions, shash: str, code: s
     manifest = store.base_manifest(opts.command)
     manifest.update(
         kind="run", scenario=scn.name, scenario_hash=shash, seed=scn.seed, trials=scn.trials,
-        filters=[f.label for f in scn.filters], state_dim=n_state(feature_count(scn)),
+        filters=[f.label for f in scn.filters], state_dim=state_length(scn),
         timeseries=opts.timeseries, code_version=code, start=store.now_iso(),
         end=None, published=None, backend=_backend_record(opts), chunks=[],
     )  # fmt: skip
@@ -703,7 +731,7 @@ def _run_locked(scn: Scenario, out: Path, opts: RunOptions, progress: Progress |
              + [f"(rejected files moved to {dest})"])  # fmt: skip
     done = np.asarray(v.done_trials(), dtype=np.int64)
     todo = np.setdiff1d(np.arange(scn.trials), done)
-    chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size))
+    chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size, state_length(scn)))
     scenario_json = scn.model_dump_json()
     meta = _parquet_meta(scn, shash, "chunk")
     n_div = {f: v.diverged().get(f, 0) for f in spec.filters}

@@ -189,12 +189,13 @@ def _eval_scenario(tuned: Scenario, index: int, n_trials: int) -> Scenario:
     return tuned.model_copy(update={"filters": [tuned.filters[i] for i in keep], "trials": n_trials})
 
 
-def _evaluate(scn: Scenario, label: str, params: dict[str, float], trials: np.ndarray, kernels: str) -> Evaluation:
-    """The trials ``trials`` of ``scn`` (already tuned and reduced), as ``spmc run`` computes them; statistics of
-    filter ``label`` from its ``trials.parquet`` columns: medians over the trials that were not lost."""
-    json = scn.model_dump_json()
-    parts = [engine.compute_chunk(json, c, "none", kernels).trials_table.to_pandas()
-             for c in engine.plan_chunks(trials, engine.AUTO_CHUNK_MAX)]  # fmt: skip
+def _evaluate(scn: Scenario, label: str, params: dict[str, float], trials: np.ndarray, kernels: str,
+              jobs: int = 1) -> Evaluation:  # fmt: skip
+    """The trials ``trials`` of ``scn`` (already tuned and reduced), as ``spmc run`` computes them (its chunks on
+    ``jobs`` cores: ``engine.compute_chunks``); statistics of filter ``label`` from its ``trials.parquet`` columns:
+    medians over the trials that were not lost."""
+    opts = engine.RunOptions(jobs=jobs, kernels=kernels, timeseries="none")
+    parts = [co.trials_table.to_pandas() for co in engine.compute_chunks(scn, trials, opts)]
     df = pd.concat(parts, ignore_index=True)
     df = df[df["filter"] == label]
     ok = ~df["lost"].to_numpy(bool)
@@ -237,10 +238,11 @@ def _moves(params: dict[str, float]) -> list[tuple[str, list[str]]]:
 def tune(scn: Scenario, label: str, trials: int = 30, max_evaluations: int = 40, min_step: float = 0.25,
          initial_step: float = 2.0, progress: Callable[[int, Evaluation, str], None] | None = None,
          kernels: str = engine.DEFAULT_KERNELS, space: str | Iterable[str] = ("q",),
-         check_trials: int | None = None) -> TuneResult:  # fmt: skip
+         check_trials: int | None = None, jobs: int = 1) -> TuneResult:  # fmt: skip
     """Coordinate search of filter ``label``'s Q / R / P0 scales (see the module docstring) on ``kernels``,
     on trials ``0 … trials-1``; then the start and the result on the held-back trials
-    ``trials … trials+check_trials-1`` (default ``check_trials = trials``; 0: no check)."""
+    ``trials … trials+check_trials-1`` (default ``check_trials = trials``; 0: no check). Each evaluation's trials
+    run on ``jobs`` cores (the same results for any ``jobs``)."""
     labels = [f.label for f in scn.filters]
     if label not in labels:
         raise TuneError(f"no filter labelled {label!r} in scenario {scn.name!r} (its filters: {', '.join(labels)})")
@@ -257,7 +259,7 @@ def tune(scn: Scenario, label: str, trials: int = 30, max_evaluations: int = 40,
     def evaluate(params: dict[str, float], which: np.ndarray) -> Evaluation:
         scn_eval = _eval_scenario(scenario_of(scn, index, params), index, trials + check_trials)
         try:
-            return _evaluate(scn_eval, label, params, which, kernels)
+            return _evaluate(scn_eval, label, params, which, kernels, jobs)
         except engine.RunError as exc:
             raise TuneError(str(exc)) from None
 

@@ -75,6 +75,16 @@ def test_auto_chunk_size_compiled_splits_over_jobs_but_keeps_small_runs_in_one_c
     assert engine.auto_chunk_size(engine.RunOptions(jobs=1, kernels="compiled"), 100) == 100
 
 
+def test_a_larger_state_splits_fewer_trials_over_the_jobs():
+    """``min_chunk``: 32 trials at case B's n = 30, by (30 / n)^2 for larger states, at least 2 (by hand:
+    32 (30 / 87)^2 = 3.8 -> 4 for configs/mission-realistic.yaml's n = 87; 32 (30 / 45)^2 = 14.2 -> 15)."""
+    assert [engine.min_chunk(n) for n in (30, 45, 87, 159, 10_000)] == [32, 15, 4, 2, 2]
+    c = engine.RunOptions(jobs=2, kernels="compiled")
+    sizes = {t: engine.auto_chunk_size(c, t, 87) for t in (1, 3, 4, 7, 30, 1000)}
+    assert sizes == {1: 1, 3: 3, 4: 4, 7: 4, 30: 15, 1000: 250}
+    assert engine.auto_chunk_size(c, 30, 30) == 30  # case B: one chunk, inline
+
+
 def test_a_small_compiled_run_runs_inline(scenario, compiled_ref, tmp_path):
     import json
 

@@ -12,6 +12,7 @@ from scenarios import scenario_dict
 from stereopose_mc import api
 from stereopose_mc.config import load_scenario, load_scenario_text
 from stereopose_mc.config.resolve import filter_setup_of, setup_of
+from stereopose_mc.mc import engine
 from stereopose_mc.studies import tuning
 from stereopose_mc.studies.tuning import TuneError, parse_space, scenario_of
 
@@ -48,6 +49,30 @@ def test_a_dispersed_tuning_evaluates_the_trials_spmc_run_runs(tmp_path):
         assert ev.nees["nees_gauge"] == pytest.approx(ok["nees_gauge_mean"].median() / ok["nees_gauge_dof"].iloc[0])
         assert ev.nis == pytest.approx(ok["nis_ratio_mean"].median())
         assert ev.errors["e_theta"] == pytest.approx(ok["e_theta"].median())
+
+
+def test_an_evaluation_on_two_cores_is_the_same_as_on_one(monkeypatch):
+    """Each evaluation's trials in chunks over the jobs (threads with the compiled kernels): the same search, the same
+    statistics, bit for bit, as one chunk in this thread."""
+    one = tuning.tune(_scenario(), "iekf", trials=6, check_trials=4, max_evaluations=3, jobs=1)
+    monkeypatch.setattr(engine, "AUTO_CHUNK_MIN", 2)  # case B's 6 trials split as a larger state's would be
+    seen, real = [], engine._iterate
+
+    def spy(scenario_json, chunks, opts, info=None, *args):
+        info = {} if info is None else info
+        out = list(real(scenario_json, chunks, opts, info, *args))
+        seen.append((len(chunks), info["ran_as"]))
+        return out
+
+    monkeypatch.setattr(engine, "_iterate", spy)
+    two = tuning.tune(_scenario(), "iekf", trials=6, check_trials=4, max_evaluations=3, jobs=2)
+    assert seen == [(2, "threading")] * (len(two.history) + 2)  # every evaluation, the two checks too
+    assert len(one.history) == len(two.history) == 3
+    for a, b in zip(one.history + [one.check_before, one.check_after], two.history + [two.check_before,
+                                                                                        two.check_after]):
+        assert (a.params, a.nees, a.nis, a.errors, a.trial_ids, a.lost) == (b.params, b.nees, b.nis, b.errors,
+                                                                            b.trial_ids, b.lost)
+        assert all(math.isfinite(v) for v in a.nees.values())
 
 
 def test_held_back_trials_are_disjoint_from_the_tuning_trials():
