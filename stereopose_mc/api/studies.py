@@ -165,7 +165,8 @@ def _kernels(kernels: str | None) -> str:
 def tune(scenario: Scenario | str | Path | Mapping[str, Any], filter: str, *, trials: int = 30,
          max_evaluations: int = 40, out: str | Path | None = None, kernels: str | None = None,
          space: str | Sequence[str] = "q", check_trials: int | None = None,
-         progress: Callable[[int, tuning.Evaluation, str], None] | None = None, jobs: int | None = None) -> Tuning:  # fmt: skip
+         progress: Callable[[int, tuning.Evaluation, str], None] | None = None,
+         jobs: int | None = None) -> Tuning:  # fmt: skip
     """Tune the filter labelled ``filter`` (its Q blocks; with ``space`` also its R and the scenario's P0:
     ``"q,r,p0"``) so its NEES and NIS are consistent, on the trials ``spmc run`` would run.
 
