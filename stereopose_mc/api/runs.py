@@ -304,9 +304,11 @@ class ReportOutcome:
     problems: list[str] = field(default_factory=list)
 
 
-def report(paths: list[str | Path], progress_of: Callable[[Path], ContextManager] | None = None) -> ReportOutcome:
+def report(paths: str | Path | list[str | Path],
+           progress_of: Callable[[Path], ContextManager] | None = None) -> ReportOutcome:  # fmt: skip
     """Reports for run directories, folders of runs (each run's report and an ``index.html``) and sweeps.
 
+    ``paths``: one path, or a list of them.
     ``progress_of(run_dir)``: a context manager giving a figure-progress callback (or None) per run.
     A broken run is listed in ``problems`` and the others are still reported.
     """
@@ -315,7 +317,7 @@ def report(paths: list[str | Path], progress_of: Callable[[Path], ContextManager
     from ..studies.sweep import SweepError
 
     res = ReportOutcome()
-    for p in map(Path, paths):
+    for p in map(Path, [paths] if isinstance(paths, (str, Path)) else paths):
         if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
             try:
                 res.written.append(build_sweep_report(p))

@@ -128,8 +128,8 @@ def export_run(run_dir: Path, fmt: str, tables: list[str] | None = None, out: Pa
     if fmt not in FORMATS:
         raise ExportError(f"--format must be one of {', '.join(FORMATS)} (got {fmt!r})")
     try:
-        manifest = json.loads((run_dir / "manifest.json").read_text())
-    except (OSError, json.JSONDecodeError):
+        manifest = json.loads((run_dir / "manifest.json").read_bytes())
+    except (OSError, ValueError):  # (ValueError: not JSON, or not UTF-8)
         manifest = None
     if not isinstance(manifest, dict) or manifest.get("kind") != "run":
         raise ExportError(f"{run_dir}: not a run directory (no manifest.json of a run made by 'spmc run')")

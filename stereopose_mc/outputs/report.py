@@ -185,11 +185,22 @@ def load_run(run_dir: Path) -> RunData:
 
 def is_run_dir(path: Path) -> bool:
     """A directory whose ``manifest.json`` says ``kind: run``."""
-    try:
-        m = json.loads((Path(path) / "manifest.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return False
+    m = _manifest(Path(path))
     return isinstance(m, dict) and m.get("kind") == "run"
+
+
+UNREADABLE = object()  # _manifest: a manifest.json that is not UTF-8 JSON
+
+
+def _manifest(path: Path) -> object:
+    """The JSON value of ``path/manifest.json``; None if there is none (or it cannot be opened); ``UNREADABLE`` if
+    it is not UTF-8 JSON."""
+    try:
+        return json.loads((path / "manifest.json").read_bytes())
+    except OSError:
+        return None
+    except ValueError:  # json.JSONDecodeError, UnicodeDecodeError
+        return UNREADABLE
 
 
 def _looks_like_run(path: Path) -> bool:
@@ -201,7 +212,7 @@ def discover(path: Path) -> tuple[list[Path], bool]:
     """``([path], False)`` for a run directory, ``(runs, True)`` for a folder of runs.
 
     A folder is searched recursively for run directories (``manifest.json`` with kind
-    ``run``), without descending into them. Raises :class:`ReportError` for a path that
+    ``run``, or one that cannot be read: its report lists the problem), without descending into them. Raises :class:`ReportError` for a path that
     is neither.
     """
     path = Path(path)
@@ -213,7 +224,7 @@ def discover(path: Path) -> tuple[list[Path], bool]:
     for root, dirs, _files in os.walk(path):
         dirs.sort()
         r = Path(root)
-        if r != path and is_run_dir(r):
+        if r != path and (is_run_dir(r) or _manifest(r) is UNREADABLE):
             runs.append(r)
             dirs.clear()
     if not runs:

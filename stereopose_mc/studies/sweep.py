@@ -196,10 +196,10 @@ def _recorded_hash(run_dir: Path) -> str | None:
 
 def _finished(run_dir: Path) -> bool:
     try:
-        m = json.loads((run_dir / "manifest.json").read_text())
-    except (OSError, json.JSONDecodeError):
+        m = json.loads((run_dir / "manifest.json").read_bytes())
+    except (OSError, ValueError):  # (ValueError: not JSON, or not UTF-8)
         return False
-    return (m.get("kind") == "run" and m.get("end") is not None and (run_dir / "trials.parquet").is_file()
+    return (isinstance(m, dict) and m.get("kind") == "run" and m.get("end") is not None and (run_dir / "trials.parquet").is_file()
             and not publish.problems(run_dir, m))  # fmt: skip
 
 
@@ -215,7 +215,12 @@ def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = Fa
             "points": [{"name": p.name, "values": p.values} for p in points]}  # fmt: skip
     sweep_file = out / SWEEP_FILE
     if sweep_file.is_file():
-        old = json.loads(sweep_file.read_text())
+        try:
+            old = json.loads(sweep_file.read_bytes())
+        except (OSError, ValueError) as exc:
+            raise SweepError(f"{sweep_file}: unreadable ({exc}); use another --out") from None
+        if not isinstance(old, dict):
+            raise SweepError(f"{sweep_file}: not a sweep file (not a JSON object); use another --out")
         if {k: old.get(k) for k in ("sets", "zip", "trials", "points")} != {k: spec[k] for k in ("sets", "zip", "trials", "points")}:
             raise SweepError(f"{out} holds a different sweep ({SWEEP_FILE}); use another --out")
         spec = old
@@ -271,10 +276,10 @@ def write_percentiles(out: Path, points: list[Point]) -> pd.DataFrame:
 def load_sweep(out: Path) -> dict:
     p = Path(out) / SWEEP_FILE
     try:
-        spec = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
+        spec = json.loads(p.read_bytes())
+    except (OSError, ValueError) as exc:  # (ValueError: not JSON, or not UTF-8)
         raise SweepError(f"{out}: not a sweep directory ({exc})") from None
-    if spec.get("kind") != "sweep":
+    if not isinstance(spec, dict) or spec.get("kind") != "sweep":
         raise SweepError(f"{out}: {SWEEP_FILE} is not a sweep")
     return spec
 

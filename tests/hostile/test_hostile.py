@@ -262,6 +262,58 @@ def test_corrupt_run_directory_files(case, command, run6, tmp_path):
     assert after == before
 
 
+
+def test_a_folder_report_names_a_run_whose_manifest_is_not_utf8_and_reports_the_others(run6, tmp_path):
+    """(Before: a traceback from the folder search, UnicodeDecodeError, and no report at all.)"""
+    import shutil
+
+    folder = tmp_path / "runs"
+    good, bad = folder / "a-good", folder / "b-bad"
+    shutil.copytree(run6, good)
+    shutil.copytree(run6, bad)
+    (bad / "manifest.json").write_bytes(b"\xff{")
+    before = {p: p.read_bytes() for p in bad.rglob("*") if p.is_file() and p.name != ".lock"}
+    r = spmc("report", folder)
+    assert r.exit_code == 2, r.output
+    errors = [ln for ln in r.output.splitlines() if ln.startswith("error: ")]
+    assert len(errors) == 1 and str(bad) in errors[0] and "manifest.json is unreadable" in errors[0], r.output
+    assert "Traceback" not in r.output
+    assert (good / "report.html").is_file() and (folder / "index.html").is_file()
+    assert {p: p.read_bytes() for p in bad.rglob("*") if p.is_file() and p.name != ".lock"} == before
+
+
+def test_export_of_a_run_whose_manifest_is_not_utf8(run6, tmp_path):
+    d = _damaged(run6, tmp_path, "manifest.json", lambda p: p.write_bytes(b"\xff{"))
+    one_error_line(spmc("export", d, "--format", "csv"), str(d), "not a run directory")
+    assert not (d / "export").exists()
+
+
+@pytest.mark.parametrize("content", [b"\xff{", b"[1, 2]", b"{"])
+def test_a_sweep_directory_whose_sweep_file_is_damaged(content, quick_scenario, tmp_path):
+    """``spmc sweep --out`` and ``spmc report`` on it: one line each, the file left as it was."""
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "sweep.json").write_bytes(content)
+    r = spmc("sweep", quick_scenario, "--set", "camera.baseline_m=1.0,1.5", "--trials", 2, "--out", out, "--quiet",
+             "--no-report")  # fmt: skip
+    one_error_line(r, "sweep.json", "another --out")
+    line = one_error_line(spmc("report", out), "not a sweep")
+    assert str(out) in line
+    assert [p.name for p in out.iterdir()] == ["sweep.json"] and (out / "sweep.json").read_bytes() == content
+
+
+def test_api_report_takes_one_path(run6, tmp_path):
+    """``api.report("runs/x")``: the run (before: each character of the string taken for a path, "/" searched)."""
+    import shutil
+
+    from stereopose_mc import api
+
+    d = tmp_path / "run"
+    shutil.copytree(run6, d)
+    res = api.report(str(d))
+    assert res.problems == [] and res.written == [d / "report.html"]
+    assert api.report(d).written == [d / "report.html"]
+
 # 11. a size limit on scenario files
 def test_validate_reads_a_bounded_amount(tmp_path):
     big = tmp_path / "big.yaml"
