@@ -21,7 +21,13 @@ SVG_RC = {"svg.hashsalt": "stereopose_mc", "svg.fonttype": "path"}
 
 
 def save_figure(fig: Figure, out_dir: Path, stem: str) -> tuple[Path, Path]:
-    """Save ``fig`` as ``stem.png`` (150 dpi) and ``stem.svg``, each written atomically."""
+    """Save ``fig`` as ``stem.png`` (150 dpi) and ``stem.svg``, each written atomically.
+
+    The SVG keeps the layout the PNG's drawing computed (its layout engine is then switched off): constrained
+    layout measures every label again otherwise, ~40 % of the SVG's time (the report's per-axis figure of 100
+    trials: 3.1 s -> 1.6 s), for positions that differ by < 0.3 % of the figure (the SVG renderer's text metrics).
+    ``fig`` is not to be drawn again after.
+    """
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
@@ -32,6 +38,7 @@ def save_figure(fig: Figure, out_dir: Path, stem: str) -> tuple[Path, Path]:
         with matplotlib.rc_context(SVG_RC):
             meta = {"Software": None} if ext == "png" else {"Date": None, "Creator": None}
             fig.savefig(buf, format=ext, dpi=DPI, metadata=meta)
+        fig.set_layout_engine("none")  # (after the PNG: the SVG is drawn at the same positions)
         path = Path(out_dir) / f"{stem}.{ext}"
         store.atomic_write_bytes(path, buf.getvalue())
         paths.append(path)
