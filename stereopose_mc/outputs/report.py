@@ -212,8 +212,8 @@ def discover(path: Path) -> tuple[list[Path], bool]:
     """``([path], False)`` for a run directory, ``(runs, True)`` for a folder of runs.
 
     A folder is searched recursively for run directories (``manifest.json`` with kind
-    ``run``, or one that cannot be read: its report lists the problem), without descending into them. Raises :class:`ReportError` for a path that
-    is neither.
+    ``run``, or one that cannot be read: its report lists the problem), without descending
+    into them. Raises :class:`ReportError` for a path that is neither.
     """
     path = Path(path)
     if not path.is_dir():

@@ -199,8 +199,8 @@ def _finished(run_dir: Path) -> bool:
         m = json.loads((run_dir / "manifest.json").read_bytes())
     except (OSError, ValueError):  # (ValueError: not JSON, or not UTF-8)
         return False
-    return (isinstance(m, dict) and m.get("kind") == "run" and m.get("end") is not None and (run_dir / "trials.parquet").is_file()
-            and not publish.problems(run_dir, m))  # fmt: skip
+    return (isinstance(m, dict) and m.get("kind") == "run" and m.get("end") is not None
+            and (run_dir / "trials.parquet").is_file() and not publish.problems(run_dir, m))  # fmt: skip
 
 
 def run_sweep(scenario_file: Path, sets: list[str], out: Path, zipped: bool = False, trials: int | None = None,
