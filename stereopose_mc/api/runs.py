@@ -186,13 +186,14 @@ class Run:
         lines = res.lines if out is not None else [ln for ln in res.lines if not ln.startswith("time series -> ")]
         return Rerun(int(trial), res.trials, ts, res.identical, lines)
 
-    def report(self, progress: FigureProgress | None = None) -> Path:
-        """Write ``figures/`` and ``report.html`` from the run's tables; return the report's path."""
+    def report(self, progress: FigureProgress | None = None, jobs: int | None = None) -> Path:
+        """Write ``figures/`` and ``report.html`` from the run's tables; return the report's path (``jobs``:
+        processes drawing the figures, default the cores available; the same files for any ``jobs``)."""
         from ..outputs import report as rep
 
         try:
             with locked(self.path, "spmc report"):
-                return rep.build_run_report(self.path, progress)
+                return rep.build_run_report(self.path, progress, default_jobs() if jobs is None else jobs)
         except rep.ReportError as exc:
             raise SpmcError(exc.lines()) from None
         except RunDirError as exc:
@@ -232,7 +233,7 @@ def _start(scn: Scenario, out: Path, opts: engine.RunOptions, progress: Progress
         raise SpmcError(str(exc)) from None
     r = Run(out, res)
     if report:
-        r.report()
+        r.report(jobs=opts.jobs)
     return r
 
 
@@ -320,7 +321,7 @@ def report(paths: str | Path | list[str | Path],
     for p in map(Path, [paths] if isinstance(paths, (str, Path)) else paths):
         if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
             try:
-                res.written.append(build_sweep_report(p))
+                res.written.append(build_sweep_report(p, default_jobs()))
             except (SweepError, rep.ReportError) as exc:
                 res.problems += exc.lines() if isinstance(exc, rep.ReportError) else [str(exc)]
             continue

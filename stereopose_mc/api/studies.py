@@ -72,7 +72,7 @@ class Sweep:
 
         sw = _sweep()
         try:
-            return build_sweep_report(self.path)
+            return build_sweep_report(self.path, default_jobs())
         except sw.SweepError as exc:
             raise SpmcError(str(exc)) from None
         except ReportError as exc:

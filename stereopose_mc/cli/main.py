@@ -52,6 +52,9 @@ def exit_now(code: int | str | None) -> NoReturn:
     elif not isinstance(code, int):  # sys.exit("message"): printed, status 1
         print(code, file=sys.stderr)
         code = 1
+    figures = sys.modules.get("stereopose_mc.outputs.figures")
+    if figures is not None:  # the report's drawing processes, and their executor's thread
+        figures.stop_drawing()
     main_thread = threading.main_thread()
     if any(t is not main_thread and t.is_alive() and not t.daemon for t in threading.enumerate()):
         sys.exit(code)

@@ -67,7 +67,7 @@ def run(
                             progress=prog, **opts)  # fmt: skip
         if report:
             with figure_progress(label, quiet) as fprog:
-                r.report(fprog)
+                r.report(fprog, jobs)  # (--jobs: the figures' processes too; default the cores available)
     except api.SpmcError as exc:
         fail(exc.lines)
     except KeyboardInterrupt:

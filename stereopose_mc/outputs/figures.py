@@ -29,14 +29,12 @@ import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from scipy.stats import chi2
 
-from ..filters.registry import thesis_role
 from ..rundir import store
 from ..rundir.percentiles import percentile_table, percentiles_markdown
 from ..rundir.tables import AXES, AXIS_UNITS, ERROR_LABELS, ERROR_NAMES
@@ -294,6 +292,8 @@ def mean_band(M: np.ndarray, dof: np.ndarray, level: float = 0.95) -> tuple[np.n
     ok = (M > 0) & (dof > 0)
     lo = np.full(M.shape, np.nan)
     hi = np.full(M.shape, np.nan)
+    from scipy.stats import chi2  # (here: a process that only draws figures, draw_all's, does without its 0.9 s)
+
     lo[ok] = chi2.ppf(a / 2, M[ok] * dof[ok]) / M[ok]
     hi[ok] = chi2.ppf(1 - a / 2, M[ok] * dof[ok]) / M[ok]
     return lo, hi
@@ -445,6 +445,8 @@ def ekf_iekf_pair(filters: list[str], types: dict[str, str]) -> tuple[str, str] 
     only filter of each type; ``None`` when there is no such pair."""
     if "ekf" in filters and "iekf" in filters:
         return "ekf", "iekf"
+    from ..filters.registry import thesis_role  # (here: the drawing processes do without the registry's imports)
+
     e = [f for f in filters if thesis_role(types.get(f)) == "ekf"]
     i = [f for f in filters if thesis_role(types.get(f)) == "iekf"]
     return (e[0], i[0]) if len(e) == 1 and len(i) == 1 else None
@@ -462,19 +464,19 @@ def build_figures(
     window_start: float | None,
     percentiles: list[float],
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
 ) -> FigureSet:
     """Write every figure and table that the inputs allow into ``out_dir``; note what is skipped.
 
-    ``progress(name)`` is called as each figure is written (the report's progress line).
+    ``progress(name)`` is called as each figure is written (the report's progress line). ``jobs``: the figures are
+    drawn and saved by that many processes (``draw_all``), the same files as one.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     fs = FigureSet()
+    todo: list[tuple[str, str, str, Callable[..., Figure], tuple]] = []  # (key, title, caption, builder, its args)
 
-    def add(fig: Figure, key: str, title: str, caption: str) -> None:
-        if progress is not None:
-            progress(key)
-        png, svg = save_figure(fig, out_dir, key)
-        fs.figures.append(FigureFile(key, title, caption, png, svg))
+    def add(builder: Callable[..., Figure], args: tuple, key: str, title: str, caption: str) -> None:
+        todo.append((key, title, caption, builder, args))
 
     pt = percentile_table(trials, percentiles)
     for label in filters:
@@ -484,7 +486,7 @@ def build_figures(
         store.atomic_write_text(out_dir / f"percentiles-{s}.md", f"# {label}\n\n" + percentiles_markdown(sub))
         fs.tables += [out_dir / f"percentiles-{s}.csv", out_dir / f"percentiles-{s}.md"]
     for label in filters:
-        add(error_histograms(trials, label), f"hist-{safe_name(label)}", f"{label}: histograms of per-trial errors",
+        add(error_histograms, (trials, label), f"hist-{safe_name(label)}", f"{label}: histograms of per-trial errors",
             "Per-trial mean error over the error window, trials not lost (thesis figures 6.8-6.13).")  # fmt: skip
 
     pair = ekf_iekf_pair(filters, filter_types)
@@ -492,7 +494,7 @@ def build_figures(
         fs.notes.append("paired EKF - IEKF histograms skipped: the run does not have both an EKF and an IEKF filter")
     else:
         diff, n_common = paired_differences(trials, *pair)
-        add(paired_difference_figure(diff, n_common, *pair), "diff-ekf-iekf",
+        add(paired_difference_figure, (diff, n_common, *pair), "diff-ekf-iekf",
             f"{pair[0]} - {pair[1]}: paired differences",
             f"Per trial, {pair[0]} error minus {pair[1]} error, over the {len(diff)} of {n_common} trials where both "
             "converged; positive means the IEKF did better (thesis figures 6.7, 6.14).")  # fmt: skip
@@ -505,14 +507,17 @@ def build_figures(
                 fs.notes.append(f"{label}: no rows in timeseries.parquet; its time figures are skipped")
                 continue
             s = safe_name(label)
-            n_ts = timeseries.loc[timeseries["filter"] == label, "trial"].nunique()
-            add(error_vs_time_figure(timeseries, label, window_start), f"time-{s}", f"{label}: error vs time",
+            g = timeseries[timeseries["filter"] == label]  # (the rows a drawing process is sent)
+            n_ts = g["trial"].nunique()
+            add(error_vs_time_figure, (_columns(g, ERROR_NAMES), label, window_start), f"time-{s}",
+                f"{label}: error vs time",
                 f"Median over the live trials (of the {n_ts} of timeseries.parquet; a lost trial leaves at the step it "
                 "was lost, grey line and right axis: their count) and central bands holding 70 % (15th-85th "
                 "percentile) and 90 % (5th-95th) of them; dotted line: start of the error window "
                 "(thesis figures 6.1-6.6).")  # fmt: skip
             if f"err_{AXES[0]}" in timeseries:
-                add(axis_error_figure(timeseries, label, window_start), f"axes-{s}", f"{label}: error per axis vs 3 sigma",
+                add(axis_error_figure, (_columns(g, [f"{w}_{c}" for c in AXES for w in ("err", "sigma")]), label,
+                                        window_start), f"axes-{s}", f"{label}: error per axis vs 3 sigma",
                     "Every trial's error per axis (thin lines; the attitude chart's components, theta the attitude "
                     "error vector) and the median over trials of the filter's own \u00b13\u03c3 (dashed); each title "
                     "gives the fraction of the error-window steps of all trials inside \u00b13\u03c3 (about 99.7 % "
@@ -520,16 +525,16 @@ def build_figures(
             if state_dim:
                 # the unit-norm quaternion takes one direction out of the state error: n - 1 dof
                 dof = state_dim - 1
-                c = consistency(timeseries, label, "nees", dof)
-                add(consistency_figure(c, label, "NEES", f"{dof} dof (n = {state_dim}, unit quaternion)"),
+                c = consistency(g, label, "nees", dof)
+                add(consistency_figure, (c, label, "NEES", f"{dof} dof (n = {state_dim}, unit quaternion)"),
                     f"nees-{s}", f"{label}: NEES vs time",
                     f"Median and 5th-95th percentile of the NEES over the trials alive at each step (the axis follows "
                     f"them), and their mean with its band chi2.ppf([0.025, 0.975], M*{dof})/M "
                     f"with {dof} = n - 1 degrees of freedom (the quaternion's norm is not an error direction).")
             else:
                 fs.notes.append(f"{label}: NEES figure skipped: manifest.json has no state_dim")
-            c = consistency(timeseries, label, "nis", None)
-            add(consistency_figure(c, label, "NIS / dof", "1 per dimension"), f"nis-{s}", f"{label}: NIS vs time",
+            c = consistency(g, label, "nis", None)
+            add(consistency_figure, (c, label, "NIS / dof", "1 per dimension"), f"nis-{s}", f"{label}: NIS vs time",
                 "NIS per measurement dimension (nis / nis_dof; the dimension varies with visibility, dropouts and "
                 "gating): median and 5th-95th percentile over the trials alive at each step, and sum(nis) / "
                 "sum(nis_dof) over them with its band chi2.ppf([0.025, 0.975], D)/D, D = sum(nis_dof); grey: the "
@@ -542,7 +547,63 @@ def build_figures(
         store.atomic_write_text(out_dir / "compute_time.csv", ct.to_csv(index=False, float_format="%.6g"))
         store.atomic_write_text(out_dir / "compute_time.md", "# Compute time per trial [s]\n\n" + _markdown_table(ct))
         fs.tables += [out_dir / "compute_time.csv", out_dir / "compute_time.md"]
-        add(compute_time_figure(timing), "runtime", "Compute time per trial",
+        add(compute_time_figure, (timing,), "runtime", "Compute time per trial",
             "Per-trial compute time from timing.parquet (thesis figure 6.37): a filter's wall time on a chunk "
             "of trials stepped together, divided by the chunk's trial count, so the spread is between chunks.")
+    for (key, title, caption, _, _), (png, svg) in zip(todo, draw_all(todo, out_dir, jobs, progress)):
+        fs.figures.append(FigureFile(key, title, caption, png, svg))
     return fs
+
+
+def _columns(ts: pd.DataFrame, names: list[str]) -> pd.DataFrame:
+    """The rows of ``ts`` with the columns a figure reads (``pivot``'s and ``names`` present)."""
+    return ts[[c for c in ("filter", "trial", "step", "t", *names) if c in ts.columns]]
+
+
+def _drawn(builder: Callable[..., Figure], args: tuple, out_dir: Path, key: str) -> tuple[Path, Path]:
+    """``save_figure`` of ``builder(*args)`` as ``key``: one figure's whole work, in whichever process runs it."""
+    return save_figure(builder(*args), out_dir, key)
+
+
+def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
+             progress: Callable[[str], None] | None) -> Iterator[tuple[Path, Path]]:  # fmt: skip
+    """``(png, svg)`` of each ``(key, title, caption, builder, args)`` of ``todo``, in its order.
+
+    Matplotlib draws in Python, holding the GIL: threads would not help. With ``jobs > 1`` the figures go to up to
+    ``jobs`` loky processes (joblib's reusable executor: later reports of the same command reuse them, their start,
+    ~2-4 s here, is paid once; ``stop_drawing`` ends them), each drawing and saving whole figures from the rows it
+    is sent; one job, or one figure, draws here. The files are the same either way (tests/outputs). ``progress(key)``
+    as each figure is written, in ``todo``'s order.
+    """
+    if jobs <= 1 or len(todo) < 2:
+        for key, _, _, builder, args in todo:
+            if progress is not None:
+                progress(key)
+            yield _drawn(builder, args, out_dir, key)
+        return
+    from joblib.externals.loky import get_reusable_executor
+
+    pool = get_reusable_executor(max_workers=min(jobs, len(todo)))
+    _POOLS.append(pool)
+    futures = [pool.submit(_drawn, builder, args, out_dir, key) for key, _, _, builder, args in todo]
+    try:
+        for (key, *_), f in zip(todo, futures):
+            paths = f.result()
+            if progress is not None:
+                progress(key)
+            yield paths
+    finally:  # an error, or Ctrl-C: the figures not started are not drawn, those being drawn are waited for (the
+        # caller then removes the staging directory they write into: none is left behind)
+        from concurrent.futures import wait
+
+        wait([f for f in futures if not f.cancel()])
+
+
+_POOLS: list = []  # the executors draw_all used, until stop_drawing
+
+
+def stop_drawing() -> None:
+    """Shut down the processes ``draw_all`` started (and the executor's thread, which would keep the interpreter
+    from its fast exit: ``cli.main.exit_now``); nothing if it started none."""
+    while _POOLS:
+        _POOLS.pop().shutdown(wait=True, kill_workers=True)  # (idle: nothing left to finish)

@@ -551,8 +551,10 @@ def render_report(data: RunData, fs: figs.FigureSet, extra: list[str] | None = N
     return page(f"{data.name}: Monte Carlo report", body)
 
 
-def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = None) -> Path:
+def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = None, jobs: int = 1) -> Path:
     """Regenerate ``DIR/figures/`` from the run's tables and write ``DIR/report.html``; return its path.
+
+    ``jobs``: processes drawing the figures (``figures.draw_all``; the same files for any ``jobs``).
 
     Raises :class:`ReportError` (listing every missing or unreadable file) for a broken
     or partial run directory; nothing is written then. The figures are drawn into a hidden
@@ -567,7 +569,7 @@ def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = Non
         fs = figs.build_figures(stage, data.trials, data.timeseries, data.timing,
                                 filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
                                 window_start=data.window_start, percentiles=data.percentiles,
-                                progress=progress)  # fmt: skip
+                                progress=progress, jobs=jobs)  # fmt: skip
         sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters, stage)
         fs.figures.extend(sens_figs)
         _swap_in(stage, final)

@@ -65,8 +65,9 @@ def sweep_figure(summary: pd.DataFrame, spec: dict, label: str, x_axis: int = 0)
     return fig
 
 
-def build_sweep_report(out: Path) -> Path:
-    """Write ``sweep.csv``, the sweep figures, every point's report, ``index.html`` and ``report.html``."""
+def build_sweep_report(out: Path, jobs: int = 1) -> Path:
+    """Write ``sweep.csv``, the sweep figures, every point's report, ``index.html`` and ``report.html`` (``jobs``:
+    processes drawing each point's figures, ``build_run_report``'s)."""
 
     out = Path(out)
     spec = sw.load_sweep(out)
@@ -79,7 +80,7 @@ def build_sweep_report(out: Path) -> Path:
     fig_dir.mkdir(exist_ok=True)
     runs = [out / p["name"] for p in spec["points"]]
     for r in runs:
-        build_run_report(r)
+        build_run_report(r, jobs=jobs)
     build_index(out, runs)
     body = [f"<h1>Sweep of {esc(spec['scenario'])}</h1>",
             "<p>" + ("Zipped" if spec.get("zip") else "Grid") + " over "

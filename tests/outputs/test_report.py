@@ -61,6 +61,21 @@ def test_spmc_run_writes_every_figure_as_png_150dpi_and_svg(run_dir):
         assert (fig_dir / name).is_file(), name
 
 
+def test_figures_drawn_by_two_processes_are_the_same_files(run_dir, tmp_path):
+    """``jobs = 2``: the figures drawn and saved in loky processes, byte for byte the files of one process, the
+    progress told of every figure in the same order."""
+    reports, told = {}, {}
+    for jobs in (1, 2):
+        d = copy_run(run_dir, tmp_path / f"j{jobs}")
+        told[jobs] = []
+        reports[jobs] = rep.build_run_report(d, told[jobs].append, jobs=jobs)
+    files = {j: {p.name: p.read_bytes() for p in (tmp_path / f"j{j}" / "figures").iterdir()} for j in (1, 2)}
+    assert set(files[1]) >= {f"{s}.{e}" for s in FULL_STEMS for e in ("png", "svg")}
+    assert files[1] == files[2]
+    assert told[1] == told[2] and len(told[1]) == len(FULL_STEMS)
+    assert reports[1].read_text().replace(str(tmp_path / "j1"), str(tmp_path / "j2")) == reports[2].read_text()
+
+
 def test_report_html_is_self_contained_and_embeds_every_figure(run_dir):
     text = (run_dir / "report.html").read_text()
     bare = strip_data_uris(text)
