@@ -305,11 +305,12 @@ class ReportOutcome:
     problems: list[str] = field(default_factory=list)
 
 
-def report(paths: str | Path | list[str | Path],
-           progress_of: Callable[[Path], ContextManager] | None = None) -> ReportOutcome:  # fmt: skip
+def report(paths: str | Path | list[str | Path], progress_of: Callable[[Path], ContextManager] | None = None,
+           jobs: int | None = None) -> ReportOutcome:  # fmt: skip
     """Reports for run directories, folders of runs (each run's report and an ``index.html``) and sweeps.
 
-    ``paths``: one path, or a list of them.
+    ``paths``: one path, or a list of them. ``jobs``: processes drawing the figures (default the cores available;
+    the same files for any ``jobs``).
     ``progress_of(run_dir)``: a context manager giving a figure-progress callback (or None) per run.
     A broken run is listed in ``problems`` and the others are still reported.
     """
@@ -317,11 +318,12 @@ def report(paths: str | Path | list[str | Path],
     from ..outputs.sweep_report import build_sweep_report
     from ..studies.sweep import SweepError
 
+    jobs = default_jobs() if jobs is None else jobs
     res = ReportOutcome()
     for p in map(Path, [paths] if isinstance(paths, (str, Path)) else paths):
         if (p / "sweep.json").is_file():  # a sweep: its own report, the points' reports and an index
             try:
-                res.written.append(build_sweep_report(p, default_jobs()))
+                res.written.append(build_sweep_report(p, jobs))
             except (SweepError, rep.ReportError) as exc:
                 res.problems += exc.lines() if isinstance(exc, rep.ReportError) else [str(exc)]
             continue
@@ -335,7 +337,7 @@ def report(paths: str | Path | list[str | Path],
         for r in runs:
             try:
                 with (progress_of(r) if progress_of else nullcontext()) as prog:
-                    res.written.append(Run(r).report(prog))
+                    res.written.append(Run(r).report(prog, jobs))
                 good.append(r)
             except SpmcError as exc:
                 res.problems += exc.lines

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -13,6 +14,9 @@ from .app import app, fail
 def report(
     paths: list[Path] = typer.Argument(..., help="run directories, or folders holding run directories"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress lines while figures are written"),
+    jobs: Optional[int] = typer.Option(
+        None, "--jobs", "-j", min=1, help="processes drawing the figures (default: the cores available to this process)"
+    ),
 ) -> None:
     """Write figures/ and report.html for each run (from its tables; nothing is re-run).
 
@@ -23,7 +27,7 @@ def report(
     from .. import api
     from .progress import figure_progress
 
-    res = api.report(paths, lambda r: figure_progress(r.name, quiet))
+    res = api.report(paths, lambda r: figure_progress(r.name, quiet), jobs)
     for w in res.written:
         typer.echo(str(w))
     if res.problems:

@@ -584,7 +584,8 @@ def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
     from joblib.externals.loky import get_reusable_executor
 
     pool = get_reusable_executor(max_workers=min(jobs, len(todo)))
-    _POOLS.append(pool)
+    if pool not in _POOLS:  # (the same executor for every report of a command)
+        _POOLS.append(pool)
     futures = [pool.submit(_drawn, builder, args, out_dir, key) for key, _, _, builder, args in todo]
     try:
         for (key, *_), f in zip(todo, futures):

@@ -76,6 +76,16 @@ def test_figures_drawn_by_two_processes_are_the_same_files(run_dir, tmp_path):
     assert reports[1].read_text().replace(str(tmp_path / "j1"), str(tmp_path / "j2")) == reports[2].read_text()
 
 
+def test_spmc_report_jobs_option(run_dir, tmp_path):
+    """``spmc report DIR --jobs 2``: the report and every figure written; ``--jobs 0`` refused (exit 2)."""
+    d = copy_run(run_dir, tmp_path / "run")
+    r = spmc("report", d, "--jobs", 2, "--quiet")
+    assert r.exit_code == 0, r.output
+    assert r.output.split() == [str(d / "report.html")]
+    assert all((d / "figures" / f"{stem}.svg").is_file() for stem in FULL_STEMS)
+    assert spmc("report", d, "--jobs", 0).exit_code == 2
+
+
 def test_report_html_is_self_contained_and_embeds_every_figure(run_dir):
     text = (run_dir / "report.html").read_text()
     bare = strip_data_uris(text)
