@@ -570,7 +570,7 @@ def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
     """``(png, svg)`` of each ``(key, title, caption, builder, args)`` of ``todo``, in its order.
 
     Matplotlib draws in Python, holding the GIL: threads would not help. With ``jobs > 1`` the figures go to up to
-    ``jobs`` loky processes (joblib's reusable executor: later reports of the same command reuse them, their start,
+    ``jobs`` loky processes (an executor of this module's: later reports of the same command reuse them, their start,
     ~2-4 s here, is paid once; ``stop_drawing`` ends them), each drawing and saving whole figures from the rows it
     is sent; one job, or one figure, draws here. The files are the same either way (tests/outputs). ``progress(key)``
     as each figure is written, in ``todo``'s order.
@@ -581,11 +581,15 @@ def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
                 progress(key)
             yield _drawn(builder, args, out_dir, key)
         return
-    from joblib.externals.loky import get_reusable_executor
+    if not _POOLS:  # one executor of its own for every report of a command (not loky's global reusable one, which
+        # joblib's loky backend, the engine's, takes over with its own attributes)
+        import atexit
 
-    pool = get_reusable_executor(max_workers=min(jobs, len(todo)))
-    if pool not in _POOLS:  # (the same executor for every report of a command)
-        _POOLS.append(pool)
+        from joblib.externals.loky import ProcessPoolExecutor
+
+        _POOLS.append(ProcessPoolExecutor(max_workers=jobs))
+        atexit.register(stop_drawing)  # (an API user's process: shut down before the interpreter's teardown)
+    pool = _POOLS[0]
     futures = [pool.submit(_drawn, builder, args, out_dir, key) for key, _, _, builder, args in todo]
     try:
         for (key, *_), f in zip(todo, futures):
