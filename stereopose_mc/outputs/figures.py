@@ -57,7 +57,7 @@ class FigureFile:
 
 @dataclass
 class FigureSet:
-    """What :func:`build_figures` wrote, and why anything was skipped."""
+    """What :func:`plan_figures` wrote and will draw (``drawn_files``), and why anything was skipped."""
 
     figures: list[FigureFile] = field(default_factory=list)
     tables: list[Path] = field(default_factory=list)
@@ -452,7 +452,14 @@ def ekf_iekf_pair(filters: list[str], types: dict[str, str]) -> tuple[str, str] 
     return (e[0], i[0]) if len(e) == 1 and len(i) == 1 else None
 
 
-def build_figures(
+def drawn_files(todo: list[tuple], out_dir: Path, jobs: int,
+                progress: Callable[[str], None] | None) -> list[FigureFile]:  # fmt: skip
+    """The ``FigureFile`` of each ``(key, title, caption, builder, args)`` of ``todo``, drawn by ``draw_all``."""
+    return [FigureFile(key, title, caption, png, svg)
+            for (key, title, caption, _, _), (png, svg) in zip(todo, draw_all(todo, out_dir, jobs, progress))]
+
+
+def plan_figures(
     out_dir: Path,
     trials: pd.DataFrame,
     timeseries: pd.DataFrame | None,
@@ -463,14 +470,9 @@ def build_figures(
     state_dim: int | None,
     window_start: float | None,
     percentiles: list[float],
-    progress: Callable[[str], None] | None = None,
-    jobs: int = 1,
-) -> FigureSet:
-    """Write every figure and table that the inputs allow into ``out_dir``; note what is skipped.
-
-    ``progress(name)`` is called as each figure is written (the report's progress line). ``jobs``: the figures are
-    drawn and saved by that many processes (``draw_all``), the same files as one.
-    """
+) -> tuple[FigureSet, list[tuple]]:
+    """The tables (written into ``out_dir`` now) and the figures to draw, ``(key, title, caption, builder, args)``
+    each (``draw_all``), that the inputs allow; the set notes what is skipped."""
     out_dir.mkdir(parents=True, exist_ok=True)
     fs = FigureSet()
     todo: list[tuple[str, str, str, Callable[..., Figure], tuple]] = []  # (key, title, caption, builder, its args)
@@ -550,9 +552,7 @@ def build_figures(
         add(compute_time_figure, (timing,), "runtime", "Compute time per trial",
             "Per-trial compute time from timing.parquet (thesis figure 6.37): a filter's wall time on a chunk "
             "of trials stepped together, divided by the chunk's trial count, so the spread is between chunks.")
-    for (key, title, caption, _, _), (png, svg) in zip(todo, draw_all(todo, out_dir, jobs, progress)):
-        fs.figures.append(FigureFile(key, title, caption, png, svg))
-    return fs
+    return fs, todo
 
 
 def _columns(ts: pd.DataFrame, names: list[str]) -> pd.DataFrame:

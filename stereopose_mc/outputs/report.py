@@ -566,12 +566,11 @@ def build_run_report(run_dir: Path, progress: Callable[[str], None] | None = Non
     stage = data.path / f".figures-staging-{os.getpid()}"
     shutil.rmtree(stage, ignore_errors=True)
     try:
-        fs = figs.build_figures(stage, data.trials, data.timeseries, data.timing,
-                                filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
-                                window_start=data.window_start, percentiles=data.percentiles,
-                                progress=progress, jobs=jobs)  # fmt: skip
-        sens_html, sens_figs = sensitivity_report.section(data.path, data.trials, data.config, data.filters, stage)
-        fs.figures.extend(sens_figs)
+        fs, todo = figs.plan_figures(stage, data.trials, data.timeseries, data.timing,
+                                     filters=data.filters, filter_types=data.filter_types, state_dim=data.state_dim,
+                                     window_start=data.window_start, percentiles=data.percentiles)  # fmt: skip
+        sens_html, sens_todo = sensitivity_report.section(data.path, data.trials, data.config, data.filters)
+        fs.figures += figs.drawn_files(todo + sens_todo, stage, jobs, progress)  # (one batch: every process busy)
         _swap_in(stage, final)
     finally:
         shutil.rmtree(stage, ignore_errors=True)

@@ -17,7 +17,6 @@ from matplotlib.figure import Figure
 from ..config.schema import Scenario
 from ..rundir.tables import ERROR_LABELS
 from ..studies import sensitivity as sens
-from ..studies.figure_files import save_figure
 from . import figures as figs
 from .html import esc, html_table
 from ..rundir import store
@@ -45,14 +44,21 @@ def heatmap(table: pd.DataFrame, label: str, params: list[str]) -> Figure:
     return fig
 
 
-def scatter_top(trials: pd.DataFrame, table: pd.DataFrame, label: str, top: int = TOP_SCATTER) -> Figure | None:
-    """Scatter plots of the ``top`` (metric, parameter) pairs with the largest |Spearman rho|."""
-    g = table[(table["filter"] == label) & (table["statistic"] == "spearman")].copy()
-    if g.empty:
-        return None
-    g = g.reindex(g["value"].abs().sort_values(ascending=False, kind="stable").index).head(top)
+def _top_pairs(table: pd.DataFrame, label: str, top: int = TOP_SCATTER) -> pd.DataFrame:
+    """The filter's ``top`` (metric, parameter) rows of ``table`` with the largest |Spearman rho|, largest first."""
+    g = table[(table["filter"] == label) & (table["statistic"] == "spearman")]
+    return g.reindex(g["value"].abs().sort_values(ascending=False, kind="stable").index).head(top)
+
+
+def _columns(trials: pd.DataFrame, label: str, top: pd.DataFrame) -> pd.DataFrame:
+    """The filter's valid trials with the columns ``scatter_top`` reads (the rows a drawing process is sent)."""
     t = trials[trials["filter"] == label]
     t = t[~t["invalid"]] if "invalid" in t else t
+    return t[list(dict.fromkeys(["diverged", *top["parameter"], *top["metric"]]))]
+
+
+def scatter_top(t: pd.DataFrame, g: pd.DataFrame, label: str) -> Figure:
+    """Scatter plots of the (metric, parameter) pairs ``g`` (``_top_pairs``) over the filter's trials ``t``."""
     fig, axes = figs._panels(f"{label}: top drivers (converged trials; diverged marked at the top edge)")
     for ax, r in zip(axes, g.itertuples()):
         ok = ~t["diverged"].to_numpy(bool)
@@ -76,10 +82,9 @@ def _fmt(v: float, digits: int = 2) -> str:
     return "" if not np.isfinite(v) else f"{v:+.{digits}f}"
 
 
-def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str],
-            fig_dir: Path | None = None) -> tuple[list[str], list[figs.FigureFile]]:  # fmt: skip
-    """HTML blocks and figures (into ``fig_dir``, default ``run_dir/figures``) of the sensitivity analysis
-    (empty for a run without dispersions)."""
+def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str]) -> tuple[list[str], list[tuple]]:
+    """HTML blocks and figures to draw of the sensitivity analysis (empty for a run without dispersions): the
+    figures as ``(key, title, caption, builder, args)``, drawn with the report's own (``figures.drawn_files``)."""
     if not config.get("dispersions"):
         return [], []
     try:
@@ -102,9 +107,7 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
         f"Sampling: <code>{esc(scn.dispersions.sampling)}</code>. "
         f"{res.invalid} invalid draw(s) left out. Full table: <code>sensitivity.csv</code>.</p>"
     )  # fmt: skip
-    fig_files: list[figs.FigureFile] = []
-    out_dir = Path(fig_dir) if fig_dir is not None else run_dir / "figures"
-    out_dir.mkdir(exist_ok=True)
+    todo: list[tuple] = []
     params = sens.parameter_columns(trials, scn)
     for label in filters:
         d = sens.drivers(res.table, label)
@@ -115,17 +118,15 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
                  "yes" if r.significant else ""] for r in d.itertuples()]  # fmt: skip
         body.append(html_table(["metric", "rank", "parameter", "rho / r", "95 % CI", "p", "n", "significant"], rows,
                                left=3, caption=f"{label}: the three strongest drivers of each metric"))  # fmt: skip
-        stem = f"sensitivity-heatmap-{figs.safe_name(label)}"
-        png, svg = save_figure(heatmap(res.table, label, params), out_dir, stem)
-        fig_files.append(figs.FigureFile(stem, f"{label}: correlation of every dispersed scalar with every metric",
-                                         "Spearman rho of the converged trials' mean errors; rank-biserial r for "
-                                         "divergence.", png, svg))  # fmt: skip
-        sc = scatter_top(trials, res.table, label)
-        if sc is not None:
-            stem = f"sensitivity-scatter-{figs.safe_name(label)}"
-            png, svg = save_figure(sc, out_dir, stem)
-            fig_files.append(figs.FigureFile(stem, f"{label}: scatter plots of the top drivers",
-                                             "The six (metric, scalar) pairs with the largest |rho|.", png, svg))
+        todo.append((f"sensitivity-heatmap-{figs.safe_name(label)}",
+                     f"{label}: correlation of every dispersed scalar with every metric",
+                     "Spearman rho of the converged trials' mean errors; rank-biserial r for divergence.", heatmap,
+                     (res.table, label, params)))  # fmt: skip
+        top = _top_pairs(res.table, label)
+        if not top.empty:
+            todo.append((f"sensitivity-scatter-{figs.safe_name(label)}", f"{label}: scatter plots of the top drivers",
+                         f"The {len(top)} (metric, scalar) pairs with the largest |rho|.", scatter_top,
+                         (_columns(trials, label, top), top, label)))  # fmt: skip
     if res.sobol is not None:
         store.atomic_write_text(run_dir / "sobol.csv", res.sobol.to_csv(index=False, float_format="%.6g"))
         body.append("<h3>Sobol indices (SALib)</h3><p>First-order S1 and total ST indices of each input factor "
@@ -141,4 +142,4 @@ def section(run_dir: Path, trials: pd.DataFrame, config: dict, filters: list[str
             body.append(html_table(["metric", "factor", "S1", "ST"], rows, left=2, caption=f"{label}: Sobol indices"))
     if res.notes:
         body.append("<ul>" + "".join(f"<li>{esc(n)}</li>" for n in res.notes) + "</ul>")
-    return body, fig_files
+    return body, todo

@@ -19,7 +19,6 @@ from matplotlib.figure import Figure
 from ..rundir import store
 from ..rundir.tables import ERROR_LABELS, ERROR_NAMES
 from ..studies import sweep as sw
-from ..studies.figure_files import save_figure
 from . import figures as figs
 from .html import esc, figure_html, fmt_num, html_table, page
 from .report import build_index, build_run_report
@@ -67,7 +66,7 @@ def sweep_figure(summary: pd.DataFrame, spec: dict, label: str, x_axis: int = 0)
 
 def build_sweep_report(out: Path, jobs: int = 1) -> Path:
     """Write ``sweep.csv``, the sweep figures, every point's report, ``index.html`` and ``report.html`` (``jobs``:
-    processes drawing each point's figures, ``build_run_report``'s)."""
+    processes drawing the figures of each point, ``build_run_report``'s, and of the sweep)."""
 
     out = Path(out)
     spec = sw.load_sweep(out)
@@ -100,13 +99,12 @@ def build_sweep_report(out: Path, jobs: int = 1) -> Path:
         rows.append(cells)
     body.append(html_table(heads, rows, left=len(paths) + 2))
     n_axes = 1 if spec.get("zip") else len(spec["axes"])
-    for label, k in ((lab, k) for lab in dict.fromkeys(summary["filter"]) for k in range(n_axes)):
-        x_path = spec["axes"][k]["path"]
-        stem = f"sweep-{figs.safe_name(label)}-{figs.safe_name(x_path)}"
-        png, svg = save_figure(sweep_figure(summary, spec, label, k), fig_dir, stem)
-        body.append(figure_html(figs.FigureFile(stem, f"{label} against {x_path}",
-                                                 "Lines: medians; bands: 10-90 % of the converged trials; "
-                                                 "bottom right: share of diverged trials.", png, svg), out))  # fmt: skip
+    todo = [(f"sweep-{figs.safe_name(label)}-{figs.safe_name(spec['axes'][k]['path'])}",
+             f"{label} against {spec['axes'][k]['path']}",
+             "Lines: medians; bands: 10-90 % of the converged trials; bottom right: share of diverged trials.",
+             sweep_figure, (summary, spec, label, k))
+            for label in dict.fromkeys(summary["filter"]) for k in range(n_axes)]  # fmt: skip
+    body += [figure_html(f, out) for f in figs.drawn_files(todo, fig_dir, jobs, None)]
     path = out / "report.html"
     store.atomic_write_text(path, page(f"Sweep: {spec['scenario']}", body))
     return path

@@ -108,6 +108,35 @@ def test_report_of_a_dispersed_run_has_the_sensitivity_section(runs):
     assert (root / "a" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
 
 
+def test_sensitivity_figures_drawn_with_the_others_by_two_processes(runs, tmp_path):
+    """The sensitivity section's figures are drawn in the report's batch (``figures.drawn_files``): told to the
+    progress line after the run's own figures, byte for byte the same with 2 processes as with 1; the scatter's
+    caption counts the pairs it draws (at most ``TOP_SCATTER``)."""
+    import shutil
+
+    from stereopose_mc.outputs import sensitivity_report
+    from stereopose_mc.outputs.report import build_run_report
+
+    root, _, _ = runs
+    told, html = {}, {}
+    for jobs in (1, 2):
+        d = tmp_path / f"j{jobs}"
+        shutil.copytree(root / "a", d)
+        told[jobs] = []
+        html[jobs] = build_run_report(d, told[jobs].append, jobs=jobs).read_text()
+    sens_keys = [k for k in told[1] if k.startswith("sensitivity-")]
+    assert sens_keys == [f"sensitivity-{kind}-{f}" for f in ("iekf", "ekf") for kind in ("heatmap", "scatter")]
+    assert told[1] == told[2] and told[1][-4:] == sens_keys
+    for key in sens_keys:
+        for ext in ("png", "svg"):
+            assert (tmp_path / "j1" / "figures" / f"{key}.{ext}").read_bytes() == \
+                (tmp_path / "j2" / "figures" / f"{key}.{ext}").read_bytes()  # fmt: skip
+    table = pd.read_csv(tmp_path / "j1" / "sensitivity.csv")
+    pairs = int(((table["filter"] == "iekf") & (table["statistic"] == "spearman")).sum())
+    n = min(pairs, sensitivity_report.TOP_SCATTER)
+    assert 0 < n and f"The {n} (metric, scalar) pairs with the largest |rho|." in html[1]
+
+
 def _chunk(disp: dict, baseline: float = 1.0):
     from stereopose_mc.mc import dispersed
 
