@@ -241,6 +241,29 @@ def test_paired_differences_keep_only_trials_where_both_converged():
     assert diff["e_theta"].tolist() == [2.0, -0.5]
 
 
+def test_axis_error_figure_draws_each_trials_errors_as_one_collection_per_axis(run_dir, monkeypatch):
+    """The per-axis figure: in each panel one line collection holding the first ``MAX_LINES`` trials' errors against
+    time (a lost trial's NaN tail is not drawn), whatever the number of trials."""
+    from matplotlib.collections import LineCollection
+
+    ts = pd.read_parquet(run_dir / "timeseries.parquet")
+    g = ts[ts["filter"] == "iekf"].copy()
+    g.loc[(g["trial"] == 1) & (g["step"] >= 10), [c for c in g.columns if c.startswith("err_")]] = np.nan
+    monkeypatch.setattr(figs, "MAX_LINES", 4)
+    fig = figs.axis_error_figure(g, "iekf", 5.0)
+    panels = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(panels) == len(figs.AXES) == 14
+    for ax, c in zip(panels, figs.AXES):
+        (lc,) = [a for a in ax.collections if isinstance(a, LineCollection)]
+        segs = lc.get_segments()
+        assert len(segs) == 4  # trials 0-3 of the 6
+        for trial, seg in enumerate(segs):
+            rows = g[g["trial"] == trial].sort_values("step")
+            rows = rows[np.isfinite(rows[f"err_{c}"])]  # (the collection's paths leave NaN points out)
+            assert len(rows) == (10 if trial == 1 else 21)
+            np.testing.assert_array_equal(seg, rows[["t", f"err_{c}"]].to_numpy())
+
+
 def test_ekf_iekf_pair_by_label_then_by_type():
     assert figs.ekf_iekf_pair(["iekf", "ekf"], {}) == ("ekf", "iekf")
     assert figs.ekf_iekf_pair(["a", "b"], {"a": "iekf", "b": "ekf"}) == ("b", "a")
