@@ -179,7 +179,7 @@ def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     w_demo, _ = _spmc(["run", str(CASE_B), "--out", str(demo), "--overwrite", "--quiet", *less], env)
     w_rep, _ = _spmc(["report", str(demo), "--quiet"], env)
     rows.append(Row("e2e", "iekf+ekf", f"make demo's command (spmc run configs/caseB.yaml: {n_demo} trials and the "
-                    "report), warm", w_demo, "s", note=f"of which the report: spmc report of that run, {w_rep:.1f} s "
+                    "report), warm", w_demo, "s", note=f"the report alone (spmc report of that run, after it): {w_rep:.1f} s "
                     "(its figures drawn on every core)"))  # fmt: skip
     shutil.rmtree(demo, ignore_errors=True)
     log(f"e2e: numpy reference, {T} trials")
