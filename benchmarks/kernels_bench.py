@@ -27,8 +27,8 @@ import yaml
 from .common import (
     active_trial_steps,
     BenchConfig,
-    CASE_B,
     blas_limit,
+    CASE_B,
     draws,
     engine_wall,
     first_healthy_path,
@@ -179,8 +179,8 @@ def e2e(cfg: BenchConfig, tmp: Path, ctx: dict[str, Any]) -> list[Row]:
     w_demo, _ = _spmc(["run", str(CASE_B), "--out", str(demo), "--overwrite", "--quiet", *less], env)
     w_rep, _ = _spmc(["report", str(demo), "--quiet"], env)
     rows.append(Row("e2e", "iekf+ekf", f"make demo's command (spmc run configs/caseB.yaml: {n_demo} trials and the "
-                    "report), warm", w_demo, "s", note=f"the report alone (spmc report of that run, after it): {w_rep:.1f} s "
-                    "(its figures drawn on every core)"))  # fmt: skip
+                    "report), warm", w_demo, "s", note=f"the report alone (spmc report of that run, after it): "
+                    f"{w_rep:.1f} s (its figures drawn on every core)"))  # fmt: skip
     shutil.rmtree(demo, ignore_errors=True)
     log(f"e2e: numpy reference, {T} trials")
     w_np, _ = _spmc(_default_run(scn, out, T, "--kernels", "numpy"), env)
