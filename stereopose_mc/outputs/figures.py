@@ -584,15 +584,16 @@ def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
                 progress(key)
             yield _drawn(builder, args, out_dir, key)
         return
-    if not _POOLS:  # one executor of its own for every report of a command (not loky's global reusable one, which
+    global _POOL
+    if _POOL is None:  # one executor of its own for every report of a command (not loky's global reusable one, which
         # joblib's loky backend, the engine's, takes over with its own attributes)
         import atexit
 
         from joblib.externals.loky import ProcessPoolExecutor
 
-        _POOLS.append(ProcessPoolExecutor(max_workers=jobs))
+        _POOL = ProcessPoolExecutor(max_workers=jobs)
         atexit.register(stop_drawing)  # (an API user's process: shut down before the interpreter's teardown)
-    pool = _POOLS[0]
+    pool = _POOL
     futures = [pool.submit(_drawn, builder, args, out_dir, key) for key, _, _, builder, args in todo]
     try:
         for (key, *_), f in zip(todo, futures):
@@ -607,11 +608,13 @@ def draw_all(todo: list[tuple], out_dir: Path, jobs: int,
         wait([f for f in futures if not f.cancel()])
 
 
-_POOLS: list = []  # the executors draw_all used, until stop_drawing
+_POOL = None  # the executor draw_all started (joblib.externals.loky's ProcessPoolExecutor), until stop_drawing
 
 
 def stop_drawing() -> None:
     """Shut down the processes ``draw_all`` started (and the executor's thread, which would keep the interpreter
     from its fast exit: ``cli.main.exit_now``); nothing if it started none."""
-    while _POOLS:
-        _POOLS.pop().shutdown(wait=True, kill_workers=True)  # (idle: nothing left to finish)
+    global _POOL
+    pool, _POOL = _POOL, None
+    if pool is not None:
+        pool.shutdown(wait=True, kill_workers=True)  # (idle: nothing left to finish)
