@@ -72,7 +72,7 @@ def _gauge_nees_per_dof_above_2(kept, dof: str) -> int:
 
 @pytest.mark.slow
 def test_images_campaign_stays_on_track_and_consistent(tmp_path):
-    """configs/caseB-images.yaml on 20 trials (about a minute on 2 cores: the tracker)."""
+    """configs/caseB-images.yaml on 20 trials (1-2 minutes on 2 cores, most of it the tracker)."""
     run = api.run(api.load(CONFIGS / "caseB-images.yaml"), trials=20, out=tmp_path / "images")
     t = run.trials
     assert len(t) == 20
