@@ -32,6 +32,21 @@ from stereopose_mc import api
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """``campaign(scenario, trials)``: the trials table of ``configs/<scenario>.yaml`` run on ``trials`` trials, run
+    once per module (mission-realistic's run serves two tests)."""
+    done = {}
+
+    def run(scenario: str, trials: int):
+        if (scenario, trials) not in done:
+            out = tmp_path_factory.mktemp("science") / scenario
+            done[scenario, trials] = api.run(api.load(CONFIGS / f"{scenario}.yaml"), trials=trials, out=out).trials
+        return done[scenario, trials]
+
+    return run
+
+
 @pytest.mark.slow
 def test_case_b_iekf_stays_on_track_and_consistent(tmp_path):
     run = api.run(api.load(CONFIGS / "caseB.yaml"), trials=100, out=tmp_path / "caseB")
@@ -54,9 +69,8 @@ LOST = [
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("scenario", "label", "trials", "most"), LOST, ids=[r[0] for r in LOST])
-def test_filter_stays_on_track(tmp_path, scenario, label, trials, most):
-    run = api.run(api.load(CONFIGS / f"{scenario}.yaml"), trials=trials, out=tmp_path / scenario)
-    t = run.trials
+def test_filter_stays_on_track(campaign, scenario, label, trials, most):
+    t = campaign(scenario, trials)
     f = t[t["filter"] == label]
     assert len(f) == trials
     lost = int(f["lost"].sum())
@@ -83,13 +97,12 @@ def test_images_campaign_stays_on_track_and_consistent(tmp_path):
 
 
 @pytest.mark.slow
-def test_mission_realistic_is_consistent_and_accurate(tmp_path):
+def test_mission_realistic_is_consistent_and_accurate(campaign):
     """configs/mission-realistic.yaml, 100 trials (issue targets: >= 90 % of trials not flagged inconsistent, median
     gauge NEES/dof <= 2, attitude error median <= 1 deg and p90 <= 3 deg over the trials not lost; today 3
     inconsistent, 1.91, 0.79 and 1.58 deg). Each target as a count with a binomial margin: a 10 % rate gives more
     than 15 of 100 with probability 4 %, a 50 % rate more than 60 of 100 with probability 1.8 %."""
-    run = api.run(api.load(CONFIGS / "mission-realistic.yaml"), trials=100, out=tmp_path / "realistic")
-    t = run.trials
+    t = campaign("mission-realistic", 100)  # (the run of test_filter_stays_on_track[mission-realistic])
     assert len(t) == 100
     assert int(t["inconsistent"].sum()) <= 15, t.loc[t["inconsistent"], "inconsistent_reason"].tolist()
     kept = t[~t["lost"]]

@@ -97,21 +97,11 @@ def test_bad_dispersions_are_rejected_with_file_line_and_exit_2(tmp_path):
     assert any("dispersions.target.inertia_kgm2: can produce an invalid scenario" in e and "triangle" in e for e in err)
 
 
-def test_report_of_a_dispersed_run_has_the_sensitivity_section(runs):
-    from stereopose_mc.outputs.report import build_run_report
-
-    root, _, _ = runs
-    html = build_run_report(root / "a").read_text()
-    assert "Sensitivity: what drives the error" in html and "the three strongest drivers" in html
-    table = pd.read_csv(root / "a" / "sensitivity.csv")
-    assert {"e_rho", "diverged"} & set(table["metric"]) and "camera.baseline_m" in set(table["parameter"])
-    assert (root / "a" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
-
-
-def test_sensitivity_figures_drawn_with_the_others_by_two_processes(runs, tmp_path):
-    """The sensitivity section's figures are drawn in the report's batch (``figures.drawn_files``): told to the
-    progress line after the run's own figures, byte for byte the same with 2 processes as with 1; the scatter's
-    caption counts the pairs it draws (at most ``TOP_SCATTER``)."""
+def test_report_of_a_dispersed_run_has_the_sensitivity_section_drawn_by_one_or_two_processes(runs, tmp_path):
+    """A dispersed run's report has the sensitivity section (its table and figures). Its figures are drawn in the
+    report's batch (``figures.drawn_files``): told to the progress line after the run's own figures, byte for byte
+    the same with 2 processes as with 1; the scatter's caption counts the pairs it draws (at most
+    ``TOP_SCATTER``)."""
     import shutil
 
     from stereopose_mc.outputs import sensitivity_report
@@ -124,6 +114,10 @@ def test_sensitivity_figures_drawn_with_the_others_by_two_processes(runs, tmp_pa
         shutil.copytree(root / "a", d)
         told[jobs] = []
         html[jobs] = build_run_report(d, told[jobs].append, jobs=jobs).read_text()
+    assert "Sensitivity: what drives the error" in html[1] and "the three strongest drivers" in html[1]
+    table = pd.read_csv(tmp_path / "j1" / "sensitivity.csv")
+    assert {"e_rho", "diverged"} & set(table["metric"]) and "camera.baseline_m" in set(table["parameter"])
+    assert (tmp_path / "j1" / "figures" / "sensitivity-heatmap-iekf.png").is_file()
     sens_keys = [k for k in told[1] if k.startswith("sensitivity-")]
     assert sens_keys == [f"sensitivity-{kind}-{f}" for f in ("iekf", "ekf") for kind in ("heatmap", "scatter")]
     assert told[1] == told[2] and told[1][-4:] == sens_keys
@@ -131,7 +125,6 @@ def test_sensitivity_figures_drawn_with_the_others_by_two_processes(runs, tmp_pa
         for ext in ("png", "svg"):
             assert (tmp_path / "j1" / "figures" / f"{key}.{ext}").read_bytes() == \
                 (tmp_path / "j2" / "figures" / f"{key}.{ext}").read_bytes()  # fmt: skip
-    table = pd.read_csv(tmp_path / "j1" / "sensitivity.csv")
     pairs = int(((table["filter"] == "iekf") & (table["statistic"] == "spearman")).sum())
     n = min(pairs, sensitivity_report.TOP_SCATTER)
     assert 0 < n and f"The {n} (metric, scalar) pairs with the largest |rho|." in html[1]

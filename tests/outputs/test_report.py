@@ -62,18 +62,19 @@ def test_spmc_run_writes_every_figure_as_png_150dpi_and_svg(run_dir):
 
 
 def test_figures_drawn_by_two_processes_are_the_same_files(run_dir, tmp_path):
-    """``jobs = 2``: the figures drawn and saved in loky processes, byte for byte the files of one process, the
-    progress told of every figure in the same order."""
-    reports, told = {}, {}
-    for jobs in (1, 2):
-        d = copy_run(run_dir, tmp_path / f"j{jobs}")
-        told[jobs] = []
-        reports[jobs] = rep.build_run_report(d, told[jobs].append, jobs=jobs)
-    files = {j: {p.name: p.read_bytes() for p in (tmp_path / f"j{j}" / "figures").iterdir()} for j in (1, 2)}
+    """``jobs = 2``: the figures drawn and saved in loky processes, byte for byte the files of one process (the
+    fixture's report, ``spmc run --jobs 1``), the progress told of every figure in the planned order, the same
+    report.html."""
+    d = copy_run(run_dir, tmp_path / "j2")
+    told: list[str] = []
+    report = rep.build_run_report(d, told.append, jobs=2)
+    files = {k: {p.name: p.read_bytes() for p in (r / "figures").iterdir()} for k, r in ((1, run_dir), (2, d))}
     assert set(files[1]) >= {f"{s}.{e}" for s in FULL_STEMS for e in ("png", "svg")}
     assert files[1] == files[2]
-    assert told[1] == told[2] and len(told[1]) == len(FULL_STEMS)
-    assert reports[1].read_text().replace(str(tmp_path / "j1"), str(tmp_path / "j2")) == reports[2].read_text()
+    planned = ["hist-iekf", "hist-ekf", "diff-ekf-iekf", *[f"{k}-{f}" for f in ("iekf", "ekf")
+                                                          for k in ("time", "axes", "nees", "nis")], "runtime"]
+    assert told == planned  # (as one process tells them: the plan's order, figures.plan_figures)
+    assert (run_dir / "report.html").read_text().replace(str(run_dir), str(d)) == report.read_text()
 
 
 def test_spmc_report_jobs_option(run_dir, tmp_path):
