@@ -62,22 +62,23 @@ def audit(tracks: pd.DataFrame, setup: ImageSetup, poses) -> pd.DataFrame:
     on_surface = np.zeros(len(out), bool)
     tol = VISIBLE_TOL * scene.shape.extent
     steps = out["step"].to_numpy()
+    px = {"right": out[["col_r", "row_r"]].to_numpy(), "left": out[["col_l", "row_l"]].to_numpy()}
     for k in np.unique(steps):
         sel = np.flatnonzero(steps == k)
         rho, D = poses[k]
         P = body[sel]
         p_L = P @ D.T + rho
         vis = np.isfinite(P[:, 0])
-        for cam, cols, err in (("right", ("col_r", "row_r"), err_r), ("left", ("col_l", "row_l"), err_l)):
+        for cam, err in (("right", err_r), ("left", err_l)):
             true_px = project_px(rig.camera, rig.baseline, p_L, cam)
-            err[sel] = np.linalg.norm(out[list(cols)].to_numpy()[sel] - true_px, axis=1)
+            err[sel] = np.linalg.norm(px[cam][sel] - true_px, axis=1)
             ok = vis.copy()
             if ok.any():
                 h = cast(scene, rig, rho, D, cam, true_px[ok, 0], true_px[ok, 1])
                 ok[ok] = h.hit & (np.linalg.norm(np.nan_to_num(h.point) - P[ok], axis=1) < tol)
             vis &= ok
         visible[sel] = vis
-        h = cast(scene, rig, rho, D, "right", out["col_r"].to_numpy()[sel], out["row_r"].to_numpy()[sel])
+        h = cast(scene, rig, rho, D, "right", px["right"][sel, 0], px["right"][sel, 1])
         on_surface[sel] = h.surface == np.array([src_surface[t] for t in tid[sel].tolist()])
     out["body_x"], out["body_y"], out["body_z"] = body.T
     out["err_r_px"], out["err_l_px"] = err_r, err_l
