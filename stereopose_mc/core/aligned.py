@@ -35,6 +35,8 @@ differences, ``T S = I``). Batched over leading axes; unit quaternions, SI units
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -204,18 +206,25 @@ def to_attitude_chart(x: Array, P: Array) -> Array:
     ``M P M^T`` with ``M = T_attitude(x) S_aligned(x)`` (exact at first order: both are
     charts of the same state around the same point).
     """
-    M = es.error_map(x) @ chart_jacobian(x)
+    M = attitude_map(x)
     return M @ P @ np.swapaxes(M, -1, -2)
 
 
-def from_attitude_chart(x: Array, P: Array) -> Array:
-    """Inverse of ``to_attitude_chart``: ``M^-1 P M^-T`` (two solves, no inverse), symmetrized."""
-    M = es.error_map(x) @ chart_jacobian(x)
+def attitude_map(x: Array) -> Array:
+    """``M = T_attitude(x) S_aligned(x)``: the aligned error state at ``x`` to the attitude chart's, to first order."""
+    return es.error_map(x) @ chart_jacobian(x)
+
+
+def from_attitude_chart(x: Array, P: Array, M: Array | None = None) -> Array:
+    """Inverse of ``to_attitude_chart``: ``M^-1 P M^-T`` (two solves, no inverse), symmetrized (``M``:
+    ``attitude_map(x)`` when the caller has it)."""
+    M = attitude_map(x) if M is None else M
     X = np.linalg.solve(M, P)
     Pa = np.swapaxes(np.linalg.solve(M, np.swapaxes(X, -1, -2)), -1, -2)
     return 0.5 * (Pa + np.swapaxes(Pa, -1, -2))
 
 
+@functools.lru_cache(maxsize=16)
 def gauge_complement(n: int) -> Array:
     """Orthonormal ``V (n-1, n-4)``: the complement of the gauge in the aligned error state.
 
@@ -228,10 +237,12 @@ def gauge_complement(n: int) -> Array:
     G = np.zeros((n - 1, 3))
     G[es.points_slice(N)] = np.tile(np.eye(3), (N, 1)) / np.sqrt(N)
     Qf, _ = np.linalg.qr(G, mode="complete")
-    return Qf[:, 3:]
+    V = Qf[:, 3:]
+    V.flags.writeable = False  # (cached per n: shared by every caller)
+    return V
 
 
-def nees_report(x_hat: Array, P: Array, x_true: Array) -> dict[str, Array]:
+def nees_report(x_hat: Array, P: Array, x_true: Array, M: Array | None = None) -> dict[str, Array]:
     """Full, gauge-projected and per-block NEES of the estimate ``(x_hat, P)`` (``P`` in the aligned chart).
 
     - ``nees``: ``e^T P^-1 e`` with ``e = local(x_hat, x_true)`` (``n - 1`` dof);
@@ -245,6 +256,8 @@ def nees_report(x_hat: Array, P: Array, x_true: Array) -> dict[str, Array]:
     error along the gauge or the body rotation does not leak, through their curvature in
     the attitude chart, into the directions the images measure to a fraction of a
     millimetre (docs/filters.md, Consistency).
+
+    ``M``: ``attitude_map(x_hat)`` when the caller has it (else computed here).
     """
     x_true = np.broadcast_to(x_true, x_hat.shape)
     n = x_hat.shape[-1]
@@ -255,7 +268,7 @@ def nees_report(x_hat: Array, P: Array, x_true: Array) -> dict[str, Array]:
     z = (np.swapaxes(V, 0, 1) @ e[..., None])[..., 0]
     out["nees_gauge"] = es.mahalanobis2(z, np.swapaxes(V, 0, 1) @ P @ V)
     eps = es.estimation_error(x_hat, x_true)
-    M = es.error_map(x_hat) @ chart_jacobian(x_hat)
+    M = attitude_map(x_hat) if M is None else M
     for name, b in es.error_blocks(st.n_points(n)).items():
         Mb = M[..., b, :]
         out[f"nees_{name}"] = es.mahalanobis2(eps[..., b], Mb @ P @ np.swapaxes(Mb, -1, -2))

@@ -213,7 +213,8 @@ def nees(x_hat: Array, P: Array, chart: str, x_true: Array, occupied: NDArray[np
         ix, ie = _reduced(n, keep)
         xr = x_hat[rows][:, ix]
         Pr = Pa[rows][:, ie][:, :, ie]
-        v = aligned.nees_report(xr, aligned.from_attitude_chart(xr, Pr), xt[rows][:, ix])
+        M = aligned.attitude_map(xr)  # (one map for the two: the same numbers)
+        v = aligned.nees_report(xr, aligned.from_attitude_chart(xr, Pr, M), xt[rows][:, ix], M)
         for k, d in es.nees_dof(ix.size).items():
             out[k][rows] = v[k]
             dof[k][rows] = d

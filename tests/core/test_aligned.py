@@ -109,3 +109,22 @@ def test_covariance_maps_to_the_attitude_chart_like_the_errors_do():
     M = es.error_map(x)[0] @ al.chart_jacobian(x)[0]
     np.testing.assert_allclose(eps, e @ M.T, rtol=0, atol=1e-4 * np.abs(e).max())  # second order: ~40 |e|^2
     np.testing.assert_allclose(al.to_attitude_chart(x, P[None])[0], M @ P @ M.T, rtol=1e-12)
+
+
+def test_a_given_attitude_map_gives_the_same_numbers():
+    """``from_attitude_chart`` and ``nees_report`` with the caller's ``M = attitude_map(x)`` (the slots' NEES share one
+    between the two): exactly what each computes without it; the map is ``T_att S_al``; ``gauge_complement`` is
+    cached per size, read-only."""
+    x = random_state(3, 4)
+    n = x.shape[-1]
+    A = RNG.standard_normal((3, n - 1, n - 1))
+    P = A @ np.swapaxes(A, -1, -2) / n + 0.1 * np.eye(n - 1)
+    xt = al.chart(x, 0.01 * RNG.standard_normal((3, n - 1)))
+    M = al.attitude_map(x)
+    assert np.array_equal(M, es.error_map(x) @ al.chart_jacobian(x))
+    assert np.array_equal(al.from_attitude_chart(x, P, M), al.from_attitude_chart(x, P))
+    given, own = al.nees_report(x, P, xt, M), al.nees_report(x, P, xt)
+    assert given.keys() == own.keys() and all(np.array_equal(given[k], own[k]) for k in own)
+    V = al.gauge_complement(n)
+    assert al.gauge_complement(n) is V and not V.flags.writeable
+    np.testing.assert_allclose(V.T @ V, np.eye(n - 4), atol=1e-12)
