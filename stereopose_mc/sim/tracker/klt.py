@@ -194,8 +194,12 @@ def _gftt(image: NDArray, mask: NDArray | None, n: int) -> Array:
             eig = cv2.cornerMinEigenVal(sub, GFTT["blockSize"], 3)
             top = float(eig.max()) if m is None else cv2.minMaxLoc(eig, m)[1]
             if 2.0 * noise_response(NOISE_DN) <= GFTT["qualityLevel"] * top:
-                c = cv2.goodFeaturesToTrack(sub, maxCorners=n, mask=m, **GFTT)
-                return np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(float) + [c0, r0]
+                return _corners(sub, m, n) + [c0, r0]
+    return _corners(image, mask, n)
+
+
+def _corners(image: NDArray, mask: NDArray | None, n: int) -> Array:
+    """``cv2.goodFeaturesToTrack`` with ``GFTT`` as ``(n, 2)`` floats (OpenCV coordinates of ``image``)."""
     c = cv2.goodFeaturesToTrack(image, maxCorners=n, mask=mask, **GFTT)
     return np.zeros((0, 2)) if c is None else c.reshape(-1, 2).astype(float)
 
