@@ -43,6 +43,7 @@ from ..core.kernels import model as km
 from ..core.kernels import secondorder as kso
 from ..core.kernels import update as ku
 from ..core.kernels import writable as _writable
+from ..core.kernels.whiten import LARGE_N
 from ..core.layout import (CHART_ALIGNED, CHART_ATTITUDE, CHART_FULL, CHARTS, E_POINTS, POINTS, n_channels,
                            n_measurements)
 from ..core.orbit import leader_kinematics
@@ -250,7 +251,7 @@ def numpy_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array, 
 
 
 def gate_distances(x: Array, P: Array, y: Array, R: Array, alpha: Array, model: km.StepModel, cols: Array,
-                   chart: int, nvis: int, C: int) -> Array:
+                   chart: int, nvis: int, C: int, offered: Array | None = None) -> Array:
     """The gate's squared distances ``d_f^2 = nu_f^T S_f^-1 nu_f`` ``(b, F)`` at the prior in the filter's coordinates,
     ``S_f = H_f P H_f^T + R_f`` from the row-sparse ``H`` (``core.kernels.gate``: the twin of ``gating.distances2``
     on ``gating.linearized_blocks`` of the dense ``H``, which costs ``C n^2`` per feature where this costs
@@ -259,15 +260,21 @@ def gate_distances(x: Array, P: Array, y: Array, R: Array, alpha: Array, model: 
     singular block, for ``mc.trial._robust_update``).
 
     ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1, 2: ``mekf.error_measurement`` at ``e = 0``.
+    ``offered (b, F)``: the features in each trial's own view (``relnav.StepMeasurement.offered``; None: all): only theirs are evaluated
+    and checked, and a block to redo raises ``NotMaskable`` (LU on a trial's blocks would meet the others').
     """
     if chart == CHART_FULL:
         hx, Hval = km.measure_batch(x, model, alpha, True)
     else:
         hx, Hval = kch.measure_batch(chart, x, np.zeros(P.shape[:2]), model, alpha, True)
     nu = y - hx
-    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, R, nu, nvis, C, chart == CHART_ALIGNED)
-    redo = np.flatnonzero(np.isnan(d2).any(axis=-1))
+    S, d2 = kg.innovation_blocks_batch(Hval, cols, P, R, nu, nvis, C, chart == CHART_ALIGNED,
+                                       _all_offered(nvis) if offered is None else np.ascontiguousarray(offered, bool))
+    nan = np.isnan(d2)
+    redo = np.flatnonzero((nan if offered is None else nan & offered).any(axis=-1))
     if redo.size:
+        if offered is not None:
+            raise NotMaskable("a gate block of the batch is not positive definite")
         from . import gating
 
         d2[redo] = gating.distances2(nu[redo], S[redo])
@@ -311,6 +318,12 @@ def kernel_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Array,
     if not hit[2]:
         return estimators.update(x, P, step, rows, fs, setup)  # a filter type or option without kernels
     return compiled_update(x, P, step, rows, fs, setup, x_true)
+
+
+@functools.lru_cache(maxsize=64)
+def _all_offered(F: int) -> Array:
+    """``(0, F)``: every feature offered to the gate's kernel (``core.kernels.gate``; never written)."""
+    return np.empty((0, F), bool)
 
 
 @functools.lru_cache(maxsize=16)
@@ -374,6 +387,11 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     ``PartialUpdateError`` (``tried=False``) for the caller (``mc.trial._robust_update``) to update
     one by one, as it does when numpy's update fails on the batch. ``x_true`` as in ``update`` (the trials numpy
     updates have NaN ``nees``: not evaluated).
+
+    ``step.offered`` (a dispersed batch as one update, ``masks_visibility``): the features out of a trial's view are
+    rows out of its update (with ``feature_mask``, as a tracker's dropped features), which changes none of its
+    numbers; where numpy's algebra would take over a trial (above) or the gate's (``gate_distances``), the update
+    raises ``NotMaskable`` instead, for the caller to update the step per pattern of visible features.
     """
     chart, iterated = chart_code(fs), _iterated(fs, setup, step)
     x, P = _writable(x), _writable(P)
@@ -392,11 +410,14 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         R = _writable(np.broadcast_to(relnav.measurement_noise(fs, setup, nvis, av, fv), (b, m)))
     alpha = _writable(step.alpha if every else step.alpha[rows]) if setup.pseudo else zeros3
     keep = None if step.feature_mask is None else step.feature_mask[rows]
+    offered = None if step.offered is None else step.offered[rows]
+    if offered is not None and keep is None:
+        keep = offered
     model = step_model(setup, vis, nd, ndd)
     if fs.gate_probability is not None and nvis:
         from . import gating
 
-        d2 = gate_distances(x, P, y, R, alpha, model, cols, chart, nvis, C)
+        d2 = gate_distances(x, P, y, R, alpha, model, cols, chart, nvis, C, offered)
         keep, rejected, lam = gating.robust_gate(d2, fs.gate_probability, C, keep, fs.gate_inflate)
         P = gating.inflated(P, lam)
     if keep is not None:
@@ -420,6 +441,8 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
     u = relnav.GatedUpdate(xo, Po, nu, nis, its, conv, rejected, used, Lo, ev, epd, ax)
     k = b - np.count_nonzero(ok)
     if k:  # a Cholesky factorization failed: those trials take the numpy path (its solvers)
+        if offered is not None:  # ... on their own features only (numpy's algebra is not blind to masked rows)
+            raise NotMaskable("a factorization of the update kernels failed")
         bad = ~ok
         if 1 < k <= ONE_BY_ONE:  # the caller updates them one by one: no batch attempt first
             raise PartialUpdateError(u, bad, "left to numpy's update", tried=False)
@@ -428,6 +451,29 @@ def compiled_update(x: Array, P: Array, step: relnav.StepMeasurement, rows: Arra
         except np.linalg.LinAlgError as exc:
             raise PartialUpdateError(u, bad, str(exc)) from exc
     return u
+
+
+class NotMaskable(Exception):
+    """A batch updated as one with its trials' own views as row masks (``relnav.StepMeasurement.offered``) has a trial
+    that numpy's algebra would update (a failed factorization) or gate: numpy's would see the masked rows of the
+    others' features, so the caller (``mc.trial._update``) updates the step per pattern of visible features
+    instead, each trial with exactly its own. Not a ``LinAlgError``: no bisection of the batch."""
+
+
+def masks_visibility(fs: FilterSetup, n: int) -> bool:
+    """Whether a dispersed batch (per-trial visibility) is updated as one, each trial's view a row mask of the union
+    of the batch's views (``relnav.StepMeasurement.offered``), instead of once per pattern of visible features
+    (``mc.trial._update``): for a filter whose every update runs on the update kernels (``kernel_update``,
+    ``supported``), with more than ``whiten.LARGE_N`` (64) columns in ``P`` (``n``).
+
+    There a masked row costs its ``h`` and ``H`` (16 values) and nothing in the ``n x n`` system
+    (``whiten._whiten_information`` forms it from the information of the rows that are not zero), and it changes
+    none of the trial's numbers: its ``H`` row is zero and its residual ``y - h`` exactly 0, so every sum over the
+    rows adds exact zeros in the same order; the gate's blocks are per feature, and those out of view are not
+    formed (``core.kernels.gate``). Below ``LARGE_N`` the rows' Gram product costs every row of the union for every
+    trial, more than the calls per pattern save.
+    """
+    return n > LARGE_N and registry.steps(fs, "compiled").update is kernel_update and supported(fs)
 
 
 class PartialUpdateError(np.linalg.LinAlgError):

@@ -85,6 +85,10 @@ class StepMeasurement:
     alpha_var: Array | None = None  # (B, 3) per-trial R of the pseudo rows; None: the filter's sigma_alpha^2
     feature_var: Array | None = None  # (B, N, C) per-trial additions to every feature's R (second order); None: none
     feature_mask: Array | None = None  # (B, n_visible) bool: per trial, the visible features measured (faults)
+    # (B, n_visible) bool: per trial, the features of the stack in its own view, where ``visible`` is the union of a
+    # dispersed batch's views (one compiled update of the batch: ``mc.trial._update``; ``feature_mask`` then
+    # within it); None: every trial sees every feature of ``visible``
+    offered: Array | None = None
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,8 @@ For a scenario with ``dispersions``, trial ``j``:
    ``N(0, P0)`` error. Trials whose filter models agree run as one batch (all of them,
    unless the camera, orbit or noise levels are dispersed with ``applies_to: both``),
    each with its own visibility (``trial.run_filter``: at each step, one update per pattern
-   of visible features; the same numbers as the trial run alone).
+   of visible features, or past 64 state columns on the compiled kernels one update with
+   each trial's view as its row mask; the same numbers as the trial run alone).
 """
 
 from __future__ import annotations

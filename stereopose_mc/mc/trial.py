@@ -271,6 +271,11 @@ def run_filter(
     # posterior when it is lost (frozen there) and the others' at the end.
     x_act, P_act = x, P
     told = 0  # the lost trials ``tick`` has been told of
+    as_one = False  # a dispersed batch updated as one, each trial's view a row mask (_update)
+    if kernels == "compiled" and visible.ndim == 3 and slots is None:
+        from ..filters.compiled import masks_visibility
+
+        as_one = masks_visibility(fs, P.shape[-1])
     for k in range(1, K + 1):
         if tick is not None:
             tick(B, fs.label, B - active.size - told)  # (and the trials this filter lost since, for progress)
@@ -310,7 +315,7 @@ def run_filter(
             x_true_all = true_state(truth.x, k, all_trials)  # (n,) shared, or (B, n) per trial
             x_true_k = x_true_all if x_true_all.ndim == 1 else x_true_all[active]
             u, failed = _update(stepper.update, kernels, xa, Pa, active, measured, visible, kept, k, x_true_all, fs,
-                                setup_k)  # fmt: skip
+                                setup_k, as_one)  # fmt: skip
             e = errors_of(u.x, x_true_k, kernels)
             try:
                 if slots is None:
@@ -424,16 +429,31 @@ class StepData:
 
 
 def _update(update, kernels: str, xa: Array, Pa: Array, active: Array, measured: StepData, visible: Array,
-            kept: Array | None, k: int, x_true: Array, fs: FilterSetup, setup: Setup):  # fmt: skip
+            kept: Array | None, k: int, x_true: Array, fs: FilterSetup, setup: Setup,
+            as_one: bool = False):  # fmt: skip
     """``_robust_update`` of the priors ``xa, Pa`` of the trials ``active`` at step ``k``.
 
     Shared visibility ``(K+1, N)``: one update of them all. Per-trial visibility ``(B, K+1, N)`` (a
     dispersed target): one update per pattern of visible features among them, each trial's with exactly
     the features it sees (the same as the trial run alone, at the cost of its own features: a stack of
-    the features any trial sees, masked per trial, costs that of the whole stack for every trial),
-    merged in ``active``'s order. ``kernels == 'compiled'``: the update also evaluates the posteriors'
-    NEES against ``x_true`` (``(n,)`` shared or ``(B, n)``), in cache.
+    the features any trial sees, masked per trial, costs that of the whole stack for every trial in the
+    rows' Gram product), merged in ``active``'s order; or with ``as_one`` (``filters.compiled.masks_visibility``:
+    the kernels' large-state update, where a masked row costs nothing in the system) one update of the union of
+    their views, each trial's own view its row mask (``_update_as_one``: the same numbers, without a call and a
+    gather per pattern). ``kernels == 'compiled'``: the update also evaluates the posteriors' NEES against
+    ``x_true`` (``(n,)`` shared or ``(B, n)``), in cache.
     """
+    if as_one and visible.ndim == 3:
+        seen = visible[active, k]
+        union = seen.any(axis=0)
+        if not (seen == union).all():  # (one pattern: the loop below, one group)
+            from ..filters.compiled import NotMaskable
+
+            try:
+                return _update_as_one(update, xa, Pa, active, measured, visible[:, k], union, kept, k, x_true, fs,
+                                      setup)  # fmt: skip
+            except NotMaskable:  # a trial for numpy's algebra: per pattern, each trial with exactly its features
+                pass
     groups = [(visible[k], None)] if visible.ndim == 2 else _patterns(visible[active, k])
     parts = []
     for vis, j in groups:
@@ -451,6 +471,25 @@ def _update(update, kernels: str, xa: Array, Pa: Array, active: Array, measured:
             return _robust_update(xa, Pa, step, rows, fs, setup, f)
         parts.append((j, *_robust_update(xa[j], Pa[j], step, rows, fs, setup, f)))
     return _merge(parts, active.size)
+
+
+def _update_as_one(update, xa: Array, Pa: Array, active: Array, measured: StepData, seen: Array, union: Array,
+                   kept: Array | None, k: int, x_true: Array, fs: FilterSetup, setup: Setup):  # fmt: skip
+    """``_update`` of a dispersed batch as one update of the features any trial sees (``union (N,)``), each
+    trial's own view (``seen (B, N)``) its ``offered`` rows (``relnav.StepMeasurement``) and, with the tracker's
+    delivered features, its ``feature_mask``. The rows outside a trial's view measure ``y = 0`` (finite: they are
+    taken out with ``h = y``, ``H = 0``). Raises ``filters.compiled.NotMaskable`` where the update cannot keep a
+    trial to its own features."""
+    offered = seen[:, union]
+    y = relnav.stack_measurement(measured.y, union, setup.pseudo)
+    F, C = offered.shape[1], measured.y.shape[-1]
+    y[:, : F * C].reshape(-1, F, C)[~offered] = 0.0
+    step = relnav.StepMeasurement(
+        y=y, alpha=measured.alpha, visible=union, t=measured.t, alpha_var=measured.alpha_var,
+        feature_var=measured.feature_var, feature_mask=offered if kept is None else kept[:, k][:, union] & offered,
+        offered=offered,
+    )  # fmt: skip
+    return _robust_update(xa, Pa, step, active, fs, setup, functools.partial(update, x_true=x_true))
 
 
 def _patterns(visible: Array) -> list[tuple[Array, Array]]:

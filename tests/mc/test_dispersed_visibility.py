@@ -2,10 +2,14 @@
 
 A dispersed attitude gives every trial its own self-occlusion pattern. ``mc.dispersed`` runs
 the trials of one filter model as one batch: at each step, one update per pattern of visible
-features among them (``mc.trial._update``). Reference: the same trials run alone.
+features among them (``mc.trial._update``), or past 64 columns on the compiled kernels one update of
+the union of their views, each trial's own view a row mask. Reference: the same trials run alone,
+and one update per pattern.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -19,26 +23,29 @@ TRIALS = np.arange(6)
 NIS_RATIO = 1.2  # tight: the lost rule fires for some trials and not for others
 
 
-def mesh_scenario(outliers: bool = True, start: str | None = None):
+def mesh_scenario(outliers: bool = True, start: str | None = None, features: int = 12, nis_ratio: float = NIS_RATIO,
+                  filters: list | None = None):  # fmt: skip
     """The dispersed mesh target (self-occlusion, a dispersed attitude) on 12 features over 14 s, with filters
     that start close to the truth and know the target (well-conditioned updates: round-off stays round-off)."""
     d = scenario_dict("mission-mesh-dispersed", time={"dt_s": 1.0, "duration_s": 14.0, "error_window_start_s": 4.0},
                       trials=TRIALS.size)  # fmt: skip
     d["target"] = {**d["target"], "shape": {"type": "mesh", "file": str(CONFIGS / "meshes" / "box.obj")},
-                   "feature_points": {"sample_on_surface": 12}}  # fmt: skip
+                   "feature_points": {"sample_on_surface": features}}  # fmt: skip
     d["initial_covariance"] = {"rho_m2": 0.01, "rho_dot_m2ps2": 1e-4, "omega_deg2ps2": 0.01, "q": 1e-6,
                                "feature_points_m2": 1e-4, "k": 0.01}  # fmt: skip
     # the filters pinned here (a gated IEKF and a plain gated MEKF with the default Q), not the example's tuned pair:
     # the tight lost rule below must fire for some trials and not for others
     d["filters"] = [{"type": "iekf", "tolerance": 0.01, "max_iterations": 10, "gating": {"probability": 0.999}},
                     {"type": "mekf", "gating": {"probability": 0.999}}]  # fmt: skip
+    if filters is not None:
+        d["filters"] = filters
     d["dispersions"] = {k: v for k, v in d["dispersions"].items() if k.startswith(("sampling", "truth_initial_state.q",
                                                                                    "truth_initial_state.omega"))}
     if not outliers:
         d["measurements"] = {k: v for k, v in d["measurements"].items() if k != "outliers"}
     if start is not None:
         d["initial_estimate"] = {"method": start}
-    d["divergence"] = {"nis_window_steps": 4, "nis_start_s": 4.0, "nis_ratio": NIS_RATIO}  # some trials lost
+    d["divergence"] = {"nis_window_steps": 4, "nis_start_s": 4.0, "nis_ratio": nis_ratio}  # some trials lost
     return load_scenario_text(yaml.safe_dump(d, sort_keys=False), "<test>")
 
 
@@ -113,3 +120,118 @@ def test_measurement_start_per_trial_visibility():
     """The start from the first frame triangulates each trial's own visible features."""
     scn = mesh_scenario(outliers=False, start="measurements")
     _assert_same(_chunks(scn, "compiled", [TRIALS.size]), _chunks(scn, "compiled", [1] * TRIALS.size))
+
+
+def _spied(monkeypatch, module, name: str, calls: list):
+    """``module.name`` wrapped to append its arguments to ``calls``."""
+    f = getattr(module, name)
+
+    def spy(*args, **kwargs):
+        calls.append(args)
+        return f(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, spy)
+
+
+def _per_pattern(monkeypatch):
+    """The compiled update of a dispersed batch once per pattern of visible features, at every size."""
+    from stereopose_mc.filters import compiled
+
+    monkeypatch.setattr(compiled, "masks_visibility", lambda fs, n: False)
+
+
+def _assert_identical(a, b):
+    for fa, fb in zip(a, b):
+        for name in fa:
+            assert np.array_equal(np.asarray(fa[name]), np.asarray(fb[name]), equal_nan=name not in (
+                "lost_reason", "inconsistent_reason")), name  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def large():
+    """24 features: 87 columns in the IEKF's full state, 86 in the MEKF's aligned error state (past 64); the lost
+    rule tighter (5 of the 6 trials lost at steps 7 to 11: the batch shrinks)."""
+    return mesh_scenario(features=24, nis_ratio=1.0)
+
+
+def test_a_large_state_batch_is_one_update_with_the_numbers_of_one_per_pattern(large, monkeypatch):
+    """Past 64 columns the compiled update takes a dispersed batch as one (``compiled.masks_visibility``): each
+    trial's features out of view are masked rows, which add exact zeros to every sum, so its numbers are those of
+    one update per pattern, bit for bit, in one call per step instead of one per pattern."""
+    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc import trial
+
+    p = engine.prepare(large)
+    assert [compiled.masks_visibility(fs, n) for fs, n in zip(p.filters, (87, 86))] == [True, True]
+    assert not compiled.masks_visibility(p.filters[0], 64)  # (up to 64 columns: per pattern)
+    ukf = engine.prepare(mesh_scenario(features=24, filters=[{"type": "ukf"}])).filters[0]
+    assert not compiled.masks_visibility(ukf, 87)  # (its updates are not the kernels')
+    as_one, per_pattern = [], []
+    with monkeypatch.context() as m:
+        _spied(m, ku, "iekf_update_batch", as_one)
+        one = _chunks(large, "compiled", [TRIALS.size])
+    with monkeypatch.context() as m:
+        _per_pattern(m)
+        _spied(m, ku, "iekf_update_batch", per_pattern)
+        ref = _chunks(large, "compiled", [TRIALS.size])
+    _assert_identical(one, ref)
+    assert len(per_pattern) > len(as_one) + 20  # (several patterns at most steps)
+    with monkeypatch.context() as m:  # measurements out of view not given (NaN: a track file's): the same numbers
+        as_one_update = trial._update_as_one
+
+        def unseen_nan(update, xa, Pa, active, measured, seen, *rest):
+            y = measured.y.copy()
+            y[~seen] = np.nan
+            return as_one_update(update, xa, Pa, active, dataclasses.replace(measured, y=y), seen, *rest)
+
+        m.setattr(trial, "_update_as_one", unseen_nan)
+        _assert_identical(_chunks(large, "compiled", [TRIALS.size]), ref)
+    assert 0 < sum(np.count_nonzero(f["lost_step"] >= 0) for f in one) < 2 * TRIALS.size
+    _assert_same(_chunks(large, "compiled", [1] * TRIALS.size), one)  # and the trials run alone
+
+
+def test_a_trial_left_to_numpy_turns_its_step_back_to_one_update_per_pattern(large, monkeypatch):
+    """A factorization the kernels report failed (forced here for every trial at t = 6 s) hands its trials to numpy's
+    algebra, which is not blind to masked rows: that step is updated per pattern (``compiled.NotMaskable``), so the
+    results are again those of one update per pattern, bit for bit."""
+    from stereopose_mc.core.kernels import update as ku
+    from stereopose_mc.filters import compiled
+    from stereopose_mc.mc import trial
+
+    now = {}
+    kernel, update = ku.iekf_update_batch, compiled.compiled_update
+
+    def failing(*args):
+        out = kernel(*args)
+        if now["t"] == 6.0:
+            out[6][:] = False  # ok: every trial left to numpy
+        return out
+
+    def timed(x, P, step, *rest, **kw):
+        now["t"] = step.t
+        return update(x, P, step, *rest, **kw)
+
+    def run(m):
+        m.setattr(ku, "iekf_update_batch", failing)
+        m.setattr(compiled, "compiled_update", timed)
+        return _chunks(large, "compiled", [TRIALS.size])
+
+    raised = []
+    as_one = trial._update_as_one
+
+    def watched(*args):
+        try:
+            return as_one(*args)
+        except compiled.NotMaskable as exc:
+            raised.append(str(exc))
+            raise
+
+    with monkeypatch.context() as m:
+        m.setattr(trial, "_update_as_one", watched)
+        one = run(m)
+    with monkeypatch.context() as m:
+        _per_pattern(m)
+        ref = run(m)
+    assert raised and all("factorization" in r for r in raised)
+    _assert_identical(one, ref)

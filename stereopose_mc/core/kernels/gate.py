@@ -85,7 +85,7 @@ def _distance2(S, b, f, nu, r0, Lc, w):
 
 
 @njit(**_JIT)
-def innovation_blocks_batch(Hval, cols, P, R, nu, n_features, channels, virtual):
+def innovation_blocks_batch(Hval, cols, P, R, nu, n_features, channels, virtual, offered):
     """``(S (B, F, C, C), d2 (B, F))``: ``S_f = H_f P H_f^T + R_f`` of the first ``F C`` rows (module docstring) and
     the gate's squared Mahalanobis distances ``d_f^2 = nu_f^T S_f^-1 nu_f`` (NaN where ``S_f`` is not positive
     definite: ``filters.compiled.gate_distances`` gives those to ``gating.distances2``, as before this kernel).
@@ -95,7 +95,9 @@ def innovation_blocks_batch(Hval, cols, P, R, nu, n_features, channels, virtual)
     measurement variances, ``nu (B, m)`` the innovations; ``virtual``: columns ``n .. n + 2`` are the aligned
     chart's point sums (``P`` read through its copy with them, ``_augmented``). Per feature, ``P[c, c]`` gathered
     once for its ``C`` rows, then ``T = V_f P[c, c]`` over each row's non-zero values and ``S_f = T V_f^T + R_f``,
-    each block exactly symmetric (its lower triangle summed, then mirrored).
+    each block exactly symmetric (its lower triangle summed, then mirrored). ``offered (B, F)``: the features to
+    evaluate, the others' ``S_f`` and ``d_f^2`` NaN, not computed (features out of a trial's own view, masked rows
+    of a batch updated as one: ``filters.compiled.masks_visibility``); ``(0, F)``: all.
     """
     B, n = P.shape[0], P.shape[1]
     F, C, k = n_features, channels, cols.shape[1]
@@ -106,11 +108,18 @@ def innovation_blocks_batch(Hval, cols, P, R, nu, n_features, channels, virtual)
     T = np.empty((C, k))
     Lc = np.empty((C, C))
     w = np.empty(C)
+    some = offered.shape[0] == B
     for b in range(B):
         if virtual:
             _augmented(P[b], Pa)
         Q = Pa if virtual else P[b]
         for f in range(F):
+            if some and not offered[b, f]:
+                for c in range(C):
+                    for d in range(C):
+                        S[b, f, c, d] = np.nan
+                d2[b, f] = np.nan
+                continue
             r0 = f * C
             for i in range(k):  # P[c, c] of the feature's columns
                 ci = cols[r0, i]
