@@ -274,3 +274,29 @@ def test_kernel_sections_measure_the_default_command(results):
     fp = st[("ekf", "FilterPy EKF loop, per computed step")].value
     assert alone.value == pytest.approx(fp / (float(split["predict"]) + float(split["update"])), rel=5e-3)  # the note's 3 digits
     assert float(split["predict"]) > 0 and float(split["update"]) > 0 and float(split["NEES"]) > 0
+
+
+def test_profile_map_names_the_loaded_kernels_where_they_were_loaded(tmp_path):
+    """benchmarks/profile_kernels.py --map-only: perf's JIT map lists the kernels' functions (the update kernel of
+    case B's run among them), one range each, none overlapping another, in the process's own JIT memory."""
+    import subprocess
+
+    script = (
+        "import os, runpy, sys; sys.argv = ['profile_kernels.py', %r, '--map-only']; "
+        "code = 0\n"
+        "try:\n    runpy.run_path(%r, run_name='__main__')\n"
+        "except SystemExit as e:\n    code = e.code\n"
+        "print('PID', os.getpid()); sys.exit(code)"
+    ) % (str(ROOT / "configs" / "caseB.yaml"), str(ROOT / "benchmarks" / "profile_kernels.py"))
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                         timeout=600)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    pid = int(re.search(r"PID (\d+)", out.stdout).group(1))
+    path = Path(f"/tmp/perf-{pid}.map")
+    lines = path.read_text().splitlines()
+    rows = [(int(a, 16), int(s, 16), name) for a, s, name in (ln.split(" ", 2) for ln in lines)]
+    path.unlink()
+    names = {name for *_, name in rows}
+    assert "stereopose_mc::core::kernels::update::iekf_update_batch" in names
+    assert all(a > 0 and s > 0 for a, s, _ in rows) and len(rows) > 50
+    assert all(a0 + s0 <= a1 for (a0, s0, _), (a1, _, _) in zip(rows, rows[1:]))  # (sorted, disjoint)
