@@ -260,8 +260,9 @@ def gate_distances(x: Array, P: Array, y: Array, R: Array, alpha: Array, model: 
     singular block, for ``mc.trial._robust_update``).
 
     ``chart`` 0: ``relnav.measurement_model`` at ``x``; 1, 2: ``mekf.error_measurement`` at ``e = 0``.
-    ``offered (b, F)``: the features in each trial's own view (``relnav.StepMeasurement.offered``; None: all): only theirs are evaluated
-    and checked, and a block to redo raises ``NotMaskable`` (LU on a trial's blocks would meet the others').
+    ``offered (b, F)``: the features in each trial's own view (``relnav.StepMeasurement.offered``; None: all): only
+    theirs are evaluated and checked, and a block to redo raises ``NotMaskable`` (LU on a trial's blocks would meet
+    the others').
     """
     if chart == CHART_FULL:
         hx, Hval = km.measure_batch(x, model, alpha, True)
