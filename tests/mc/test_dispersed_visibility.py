@@ -25,8 +25,9 @@ NIS_RATIO = 1.2  # tight: the lost rule fires for some trials and not for others
 
 def mesh_scenario(outliers: bool = True, start: str | None = None, features: int = 12, nis_ratio: float = NIS_RATIO,
                   filters: list | None = None, dropout: float = 0.0):  # fmt: skip
-    """The dispersed mesh target (self-occlusion, a dispersed attitude) on 12 features over 14 s, with filters
-    that start close to the truth and know the target (well-conditioned updates: round-off stays round-off)."""
+    """The dispersed mesh target (self-occlusion, a dispersed attitude) on ``features`` features (12) over 14 s, with
+    filters that start close to the truth and know the target (well-conditioned updates: round-off stays round-off);
+    ``filters`` other filters, ``dropout`` the tracker's share of dropped features, ``nis_ratio`` the lost rule's."""
     d = scenario_dict("mission-mesh-dispersed", time={"dt_s": 1.0, "duration_s": 14.0, "error_window_start_s": 4.0},
                       trials=TRIALS.size)  # fmt: skip
     d["target"] = {**d["target"], "shape": {"type": "mesh", "file": str(CONFIGS / "meshes" / "box.obj")},
