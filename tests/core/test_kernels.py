@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st_h
 
 from stereopose_mc.core import camera, dynamics, inertia, jacobians, kalman, state as st
 from stereopose_mc.core.kernels import model as km
@@ -587,6 +588,30 @@ def test_row_kernels_read_rows_in_place(n):
     B = rng.standard_normal((4, n))
     for i, j in ((0, 0), (3, n - 1), (2, n // 2)):
         assert read(B, i * n + j) == B[i, j]
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st_h.integers(0, 140), cuts=st_h.lists(st_h.integers(0, 150), min_size=3, max_size=3),
+       seed=st_h.integers(0, 2**32 - 1))
+def test_dot_row_pair_is_two_dot_rows_bit_for_bit(n, cuts, seed):
+    """``_dot_row_pair`` is ``_dot_row`` of rows ``i`` and ``i + 1`` (bit for bit: the same chains, the same tails),
+    for any ``lo <= hi_i <= hi_j``; the update's ``A v`` (``update._row_products``) and ``centred._lower_mul``'s
+    ``L z``, which take rows by pairs, equal the row-by-row ``_dot_row`` bit for bit (odd sizes: a last row alone)."""
+    from stereopose_mc.core.kernels import centred as kc, rows as kr, update as ku
+
+    rng = np.random.default_rng(seed)
+    lo, hi_i, hi_j = sorted(cuts)
+    w = hi_j + 1
+    M, b = rng.standard_normal((3, w)) * 10.0 ** rng.integers(-3, 4, (3, w)), rng.standard_normal(w)
+    got = kr._dot_row_pair(M, 1, b, lo, hi_i, hi_j)
+    assert got == (kr._dot_row(M, 1, b, lo, hi_i), kr._dot_row(M, 2, b, lo, hi_j))
+    A, v = rng.standard_normal((n, n)), rng.standard_normal(n)
+    out, low = np.empty(n), np.empty(n)
+    ku._row_products(A, v, out)
+    kc._lower_mul(np.tril(A), v, low)
+    assert out.tolist() == [kr._dot_row(A, i, v, 0, n) for i in range(n)]
+    assert low.tolist() == [kr._dot_row(np.tril(A), i, v, 0, i + 1) for i in range(n)]
+    np.testing.assert_allclose(out, A @ v, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(A).sum()))
 
 
 @pytest.mark.parametrize("n", [1, 5, 29, 70])

@@ -62,7 +62,7 @@ from .centred import _center_cov, _centered_model_rows, _centered_virtual_rows, 
 from .cholesky import _cholesky, _cholesky_t, _cholesky_tu
 from .consistency import N_AXES, _axis_row, _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, Q_END, _measure_one
-from .rows import _dot, _dot_row
+from .rows import _dot, _dot_row, _dot_row_pair
 from .triangular import _factor, _posterior_covariance_rev, _solve
 from .whiten import LARGE_N, _whiten_g, scratch_sizes
 
@@ -190,6 +190,19 @@ def _cost_at(chart, z, xp, L, yb, rws, mask, model, alpha, e, xt, hx, H, D, dD, 
             e = (yb[r] - hx[r]) * rws[r]
             c += e * e
     return c
+
+
+@njit(**_JIT)
+def _row_products(A, v, out):
+    """``out = A v`` row by row, ``out[i] = _dot_row(A, i, v, 0, n)``, two rows per pass (``rows._dot_row_pair``: the
+    same sums in the same order)."""
+    n = A.shape[0]
+    i = 0
+    while i + 2 <= n:
+        out[i], out[i + 1] = _dot_row_pair(A, i, v, 0, n, n)
+        i += 2
+    if i < n:
+        out[i] = _dot_row(A, i, v, 0, n)
 
 
 @njit(**_JIT)
@@ -349,8 +362,9 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
                 for i in range(n):
                     zn[i] = d[i]
             else:
+                _row_products(A, z, zt)  # (zt: free until the line search)
                 for i in range(n):
-                    zn[i] = (g[i] - z[i]) + _dot_row(A, i, z, 0, n)
+                    zn[i] = (g[i] - z[i]) + zt[i]
                 M = A
                 if control == CONTROL_LM:
                     for i in range(n):
@@ -375,9 +389,10 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
                 # (h and H at the same point: the same numbers as measuring again there).
                 jac_full = False
                 if stopping == STOP_MAHALANOBIS and it < max_iter - 1:
+                    _row_products(A, d, dx)  # (dx: free until the stopping test)
                     sf = 0.0
                     for i in range(n):
-                        sf += d[i] * _dot_row(A, i, d, 0, n)
+                        sf += d[i] * dx[i]
                     jac_full = not (math.sqrt(max(sf, 0.0)) < tol)
                 a = 1.0
                 accepted = False
@@ -418,8 +433,9 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             elif stopping == STOP_MAHALANOBIS:  # |dz|^2 + |Hw dz|^2 = dz^T A dz
                 for i in range(n):
                     dx[i] = zn[i] - z[i]
+                _row_products(A, dx, zt)  # (zt: free after the step control)
                 for i in range(n):
-                    size += dx[i] * _dot_row(A, i, dx, 0, n)
+                    size += dx[i] * zt[i]
                 size = math.sqrt(max(size, 0.0))
             elif stopping == STOP_PRIOR:
                 for i in range(n):
@@ -439,8 +455,8 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             small = accepted and size < tol
             if not accepted:
                 fresh = False  # Afin is an earlier iterate's: factorize it again below
-            elif control != CONTROL_NONE:
-                _keep_linearization(A, Afin)
+            elif control != CONTROL_NONE:  # the buffers swapped, not copied: A is linearized again before it is read
+                A, Afin = Afin, A
             for i in range(n):
                 z[i] = zn[i]
             cost = c_new
