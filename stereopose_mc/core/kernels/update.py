@@ -207,7 +207,8 @@ def _row_products(A, v, out):
 
 @njit(**_JIT)
 def _keep_linearization(A, Afin):
-    """Copy the iterate's ``A = I + Hw^T Hw`` (that of the last accepted step gives ``P+``)."""
+    """Copy the prior's ``A = I + Hw^T Hw`` (the first iterate's, kept in case the first step is rejected; an accepted
+    later iterate's is kept by swapping the two buffers). The ``A`` of the last accepted step gives ``P+``."""
     Afin[:, :] = A
 
 
