@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st_h
 
 pytest.importorskip("numba")
 
@@ -351,20 +352,28 @@ def test_small_block_mahalanobis_reads_its_block_in_place():
             assert got == want or (np.isnan(got) and np.isnan(want)), (trial, o, r, m, got, want)
 
 
-@pytest.mark.parametrize("N", [1, 2, 5, 8])
-def test_gauge_columns_are_solved_like_a_triangular_solve(N):
+@pytest.mark.parametrize("N,centred", [(1, False), (2, False), (5, False), (8, False), (2, True), (5, True), (8, True)])
+def test_gauge_columns_are_solved_like_a_triangular_solve(N, centred):
     """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, ``L``
     given as the square root ``R = J L^T`` (the compiled update's layout), against scipy's triangular solve; zero
-    above the points' rows."""
+    above the points' rows. ``centred``: the columns ``T G`` of the centred coordinates (``core.kernels.centred``'s
+    ``T`` applied to ``G`` by ``_center_rows``, for two points or more: the unit vectors of the points' mean)."""
     from scipy.linalg import solve_triangular
+
+    from stereopose_mc.core.kernels.centred import _center_rows
 
     ne = 14 + 3 * N
     A = RNG.standard_normal((ne, ne))
     L = np.linalg.cholesky(A @ A.T + ne * np.eye(ne))
     G = np.zeros((ne, 3))
     G[12 : 12 + 3 * N] = np.tile(np.eye(3), (N, 1))
+    if centred:
+        TG = np.zeros_like(G)
+        _center_rows(G, TG, N)
+        np.testing.assert_array_equal(TG, np.eye(ne, 3, -12))
+        G = TG
     U = np.full((3, ne), np.nan)
-    kc._gauge_forward(np.ascontiguousarray(L.T[::-1]), U, N)
+    kc._gauge_forward(np.ascontiguousarray(L.T[::-1]), U, N, centred)
     want = solve_triangular(L, G, lower=True).T
     np.testing.assert_allclose(U, want, rtol=1e-13, atol=1e-15)
     assert np.all(U[:, :12] == 0.0)
@@ -518,3 +527,36 @@ def test_finite_is_numpys_isfinite_on_every_kind_of_float():
                 w = v.copy()
                 w[i] = x
                 assert not _finite(w) and not np.isfinite(w).all()
+
+
+@settings(max_examples=40, deadline=None)
+@given(N=st_h.integers(1, 30), scale=st_h.floats(-6.0, 3.0), seed=st_h.integers(0, 2**32 - 1))
+def test_the_points_block_from_the_points_is_blocks_sum_bit_for_bit(N, scale, seed):
+    """``_point_block`` (the points' rows of ``M`` written from ``x_hat``'s points, ``d P_i = e_Pi + [P_i x] delta``)
+    gives ``_block``'s ``Y = M_pts P`` and ``C = M_pts P M_pts^T`` on the rows of ``_attitude_rows`` bit for bit, at
+    any number of points and scale (the same terms added to 0 in the same order), and ``C`` is
+    ``M_pts P M_pts^T`` (dense, numpy) to round-off."""
+    from stereopose_mc.core.layout import E_POINTS, E_ROT, VEC
+
+    rng = np.random.default_rng(seed)
+    n = 15 + VEC * N
+    ne = n - 1
+    xh = rng.standard_normal(n) * 10.0 ** rng.uniform(-2, 2, n)
+    k = VEC + VEC * N
+    cnt, cols, vals = np.zeros(ne, np.int64), np.zeros((ne, k), np.int64), np.zeros((ne, k))
+    kc._attitude_rows(xh, N, rng.standard_normal((3, 3)), rng.standard_normal(3), cnt, cols, vals, np.zeros((6, 3)))
+    A = rng.standard_normal((ne, ne)) * 10.0**scale
+    P = A @ A.T
+    lo, hi = E_POINTS, E_POINTS + VEC * N
+    Y1, C1 = np.full((ne, ne), np.nan), np.full((ne, ne), np.nan)
+    Y2, C2 = Y1.copy(), C1.copy()
+    kc._block(cnt, cols, vals, lo, hi, P, Y1, C1, E_ROT, hi)
+    kc._point_block(xh, N, P, Y2, C2)
+    m = hi - lo
+    np.testing.assert_array_equal(Y2[:m, E_ROT:hi], Y1[:m, E_ROT:hi])
+    np.testing.assert_array_equal(C2[:m, :m], C1[:m, :m])
+    M = np.zeros((m, ne))
+    for r in range(m):
+        M[r, cols[lo + r, : cnt[lo + r]]] = vals[lo + r, : cnt[lo + r]]
+    ref = M @ P @ M.T
+    np.testing.assert_allclose(C2[:m, :m], ref, rtol=1e-10, atol=1e-12 * np.abs(ref).max())

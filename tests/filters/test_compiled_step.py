@@ -390,6 +390,33 @@ def test_the_update_evaluates_its_posteriors_nees_as_the_nees_kernel(kind, error
 
 
 @pytest.mark.parametrize("kind", ["ekf", "iekf"])
+def test_past_64_columns_the_nees_take_the_centred_square_root(kind):
+    """Past ``LARGE_N`` the aligned chart's update forms ``P+ = T^-1 M M^T T^-T`` in centred point coordinates
+    (``core.kernels.centred``; ``T^-1 M`` is not triangular, so no factor is returned) and its NEES take ``M``
+    itself (``consistency._one`` with ``centred``: the full and gauge NEES of ``T e``, ``P+`` not factorized
+    again): those of ``nees_and_pd`` on its own posteriors (``P+`` factorized) to round-off, the block NEES (from
+    ``P+``'s blocks) bit for bit, ``pd`` True."""
+    from stereopose_mc.core.kernels import consistency as kc, whiten as kw
+    from stereopose_mc.filters import compiled
+
+    x, P, step, fs, setup = _aligned_step(kind, B=4, N=24)
+    assert P.shape[-1] > kw.LARGE_N and fs.error_state == "aligned"
+    rows = np.arange(len(x))
+    rng = np.random.default_rng(8)
+    xt = aligned.chart(x, np.einsum("bij,bj->bi", np.linalg.cholesky(P), rng.standard_normal(P.shape[:2])))
+    u = compiled.update(x, P, step, rows, fs, setup, x_true=xt)
+    np.testing.assert_array_equal(u.P, compiled.update(x, P, step, rows, fs, setup).P)
+    ref, pd = kc.nees_and_pd(u.x, u.P, xt, False)
+    assert pd.all() and (u.nees_pd == 1.0).all()
+    for j, key in enumerate(kc.KEYS):
+        if key in ("nees", "nees_gauge"):
+            np.testing.assert_allclose(u.nees[:, j], ref[key], rtol=1e-9, err_msg=key)
+        else:
+            np.testing.assert_array_equal(u.nees[:, j], ref[key], key)
+    assert (ref["nees_gauge"] < ref["nees"]).all()  # the gauge projected off: not the full NEES again
+
+
+@pytest.mark.parametrize("kind", ["ekf", "iekf"])
 @pytest.mark.parametrize("error_state", ["full", "aligned", "attitude"])
 def test_the_update_gives_the_aligned_charts_per_axis_errors_as_the_axes_kernel(kind, error_state):
     """In the aligned chart the compiled update returns, beside each posterior's NEES, its per-axis errors and their

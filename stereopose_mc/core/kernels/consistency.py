@@ -49,6 +49,7 @@ from . import attitude as _att
 from . import writable as _writable
 from ._refs import borrow, keep
 from .aligned import _apply_error_map, _error_map, _local, _qmul
+from .centred import _center_rows
 from .cholesky import _cholesky, _cholesky_small, _cholesky_upper, _forward, _upper_rows
 from .model import Q_END
 from .model import n_points as _n_points
@@ -207,6 +208,43 @@ def _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp, N, c0, c1):
 
 
 @njit(**_JIT)
+def _point_block(xh, N, P, Y, C):
+    """``_block`` of the points' rows of ``M`` (``_attitude_rows``: ``d P_i = e_Pi + [P_i x] delta``, the row of point
+    ``i``'s axis ``a`` is 1 at ``e_Pi``'s column ``a``, then the two entries of ``[P_i x]`` on ``delta``) from the
+    points ``P_i`` of ``x_hat`` themselves, not from the rows' list of non-zeros: the same sums in the same order,
+    bit for bit (``_block`` adds each non-zero's term to ``0``, in the rows' order), without the list's indirection.
+    ``Y = M_pts P`` on the columns ``delta`` and the points (those of the non-zeros), ``C = Y M_pts^T``."""
+    m = VEC * N
+    d0, d1, d2 = E_ROT, E_ROT + 1, E_ROT + 2
+    c1 = E_POINTS + m
+    for a in range(m):
+        o = POINTS + a - a % 3  # the point's coordinates in x_hat
+        q0, q1, q2 = xh[o], xh[o + 1], xh[o + 2]
+        # [P x]'s row a % 3: (d1, -q2), (d2, q1) / (d0, q2), (d2, -q0) / (d0, -q1), (d1, q0), as _put_cross puts them
+        if a % 3 == 0:
+            k1, v1, k2, v2 = d1, -q2, d2, q1
+        elif a % 3 == 1:
+            k1, v1, k2, v2 = d0, q2, d2, -q0
+        else:
+            k1, v1, k2, v2 = d0, -q1, d1, q0
+        k0 = E_POINTS + a
+        for c in range(E_ROT, c1):
+            Y[a, c] = ((0.0 + 1.0 * P[k0, c]) + v1 * P[k1, c]) + v2 * P[k2, c]
+    for a in range(m):
+        y0, y1, y2 = Y[a, d0], Y[a, d1], Y[a, d2]
+        for b in range(a + 1):
+            o = POINTS + b - b % 3
+            if b % 3 == 0:
+                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y1 * -xh[o + 2]) + y2 * xh[o + 1]
+            elif b % 3 == 1:
+                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y0 * xh[o + 2]) + y2 * -xh[o]
+            else:
+                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y0 * -xh[o + 1]) + y1 * xh[o]
+            C[a, b] = s
+            C[b, a] = s
+
+
+@njit(**_JIT)
 def _put(cnt, cols, vals, r, c, v):
     """Append the non-zero ``M[r, c] = v``."""
     j = cnt[r]
@@ -240,9 +278,11 @@ def _forward_r(R, b, out):
 
 
 @njit(**_JIT)
-def _gauge_forward(R, U, N):
+def _gauge_forward(R, U, N, centred):
     """``U[j] = L^-1 G_j`` for the 3 gauge columns at once (``G_j``: 1 on every point's row ``12 + 3 i + j``), ``L``
-    given by ``R`` as in ``_forward_r``.
+    given by ``R`` as in ``_forward_r``; ``centred``: ``L`` the factor of the centred covariance ``T P T^T``
+    (``core.kernels.centred``), where the gauge columns are ``T G_j``, the unit vectors of the points' mean
+    (row ``12 + j``: the deviations of a common shift are zero).
 
     ``G``, hence ``U``, is zero above the points' rows (12): forward substitution from there,
     the three right-hand sides in one pass over ``L`` (three independent sums per row).
@@ -253,7 +293,7 @@ def _gauge_forward(R, U, N):
             U[j, i] = 0.0
     for i in range(E_POINTS, ne):
         j = (i - E_POINTS) % VEC
-        p = i < E_POINTS + VEC * N  # a point's row: G_j is 1 there for j = (i - E_POINTS) % VEC
+        p = i < E_POINTS + VEC * (1 if centred else N)  # a row where G_j (T G_j) is 1, for j = (i - E_POINTS) % VEC
         s0 = 1.0 if p and j == 0 else 0.0
         s1 = 1.0 if p and j == 1 else 0.0
         s2 = 1.0 if p and j == 2 else 0.0
@@ -337,12 +377,15 @@ def _point_rows_sum(P, N, Sp):
 
 @njit(**_JIT)
 def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf, given,
-         var):
+         var, centred):
     """The 8 NEES of one aligned-chart covariance ``P`` into ``out`` (module docstring); False if ``P`` is not
     positive definite (nothing written). ``Rc``: ``P``'s square root where ``given``, else ``_own_root``'s output
-    (``Uf`` scratch). Also leaves the attitude-chart error ``eps`` and, in ``var (N_AXES,)``, the variances of its
-    per-axis rows (the diagonals of the blocks ``M P M^T`` formed for the block NEES: ``axes.axis_errors_batch``'s
-    numbers, bit for bit), which the compiled update returns beside the NEES."""
+    (``Uf`` scratch); ``centred`` (given): ``Rc`` is the square root ``J M^T`` of the centred covariance ``T P T^T =
+    M M^T`` (``core.kernels.centred``, the compiled update's large states), and the full and gauge NEES are those of
+    ``T e`` with it (``e^T P^-1 e = (T e)^T (T P T^T)^-1 T e``; the gauge columns ``T G``). Also leaves the
+    attitude-chart error ``eps`` and, in ``var (N_AXES,)``, the variances of its per-axis rows (the diagonals of the
+    blocks ``M P M^T`` formed for the block NEES: ``axes.axis_errors_batch``'s numbers, bit for bit), which the
+    compiled update returns beside the NEES."""
     n = xh.shape[0]
     ne = n - 1
     # --- aligned error at the estimate: e = local_aligned(x_hat, x_true); D, v_hat = v3[2] kept for M below
@@ -351,13 +394,17 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
     # ``Rc = J L^T`` (``given``: the compiled update's), or factorized here (``_own_root``, ``Uf`` scratch)
     if not (given or _own_root(P, Uf, Rc)):
         return False
-    _forward_r(Rc, e, w)
+    if centred:  # T e (into u, free until the blocks below), then |M^-1 T e|^2
+        _center_rows(e.reshape((ne, 1)), u.reshape((ne, 1)), N)
+        _forward_r(Rc, u, w)
+    else:
+        _forward_r(Rc, e, w)
     out[0] = _dot(w, w, 0, ne)
     # --- gauge-projected NEES: e^T (P^-1 - P^-1 G (G^T P^-1 G)^-1 G^T P^-1) e, G = "the same e_P for every
     # point" (3 columns), the NEES of W e with W P W^T for any W with W G = 0 of full rank (W V^T = I on
     # the complement: core.aligned.gauge_complement); as |w - Q Q^T w|^2, Q an orthonormal basis of U = L^-1 G
     # (modified Gram-Schmidt), with no cancellation between the full NEES and the gauge part.
-    _gauge_forward(Rc, U, N)
+    _gauge_forward(Rc, U, N, centred)
     for j in range(3):
         for k in range(j):
             s = _dot_rows(U, k, U, j, E_POINTS, ne)
@@ -385,6 +432,8 @@ def _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rc, Lb, w, U, u, Y, D, D
         m = hi - lo
         if b < 2:
             _block_points(cnt, cols, vals, lo, hi, P, Y, C, Sp, Wp[3 * b : 3 * b + 3], N, c0, c1)
+        elif b == 4:  # the points' block, from the points themselves (_block's numbers)
+            _point_block(xh, N, P, Y, C)
         else:
             _block(cnt, cols, vals, lo, hi, P, Y, C, c0, c1)
         if b != 4:  # the per-axis variances (``axes.axis_errors_batch``'s, the same blocks): all but the points'
@@ -754,10 +803,12 @@ def _nees_given(xh, P, xt, Rg, out, Tm, e, W, eps, C, Lb, w, D, Dt, R, dq, tmp, 
 
 
 @njit(**_JIT)
-def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
+def _nees_one(xh, P, xt, attitude, Rg, have, out, ws, centred):
     """One trial of ``nees_batch``: its 8 NEES into ``out`` (left as they are, NaN, where the state or ``P`` is not
     finite or ``P`` is not positive definite) and ``pd``, returned. ``Rg``: ``P``'s square root ``J U`` where the
-    caller has one (``have``; used where ``_factor_given``); ``ws``: ``_nees_scratch``. The compiled update calls
+    caller has one (``have``; used where ``_factor_given``), or with ``centred`` (an aligned-chart ``P``) the square
+    root of its centred covariance ``T P T^T`` (``_one``; the compiled update's large states, which form ``P+``
+    from it: no factorization of ``P+`` again); ``ws``: ``_nees_scratch``. The compiled update calls
     it on each posterior as soon as it is formed (``core.kernels.update``: ``P+`` and its square root still in cache;
     the full state's through ``_nees_given`` first, the same numbers).
     """
@@ -791,10 +842,10 @@ def _nees_one(xh, P, xt, attitude, Rg, have, out, ws):
             np.dot(C, Mi.T, Pa)
             _mirror_lower(Pa)
         _one(xh, Pa, xt, N, out, e, eps, cnt, cols, vals, C, Lr, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, L, False,
-             ax)  # fmt: skip
+             ax, False)  # fmt: skip
         return False
     return _one(xh, P, xt, N, out, e, eps, cnt, cols, vals, C, Rt, Lb, w, U, u, Y, D, Dt, R, dq, tmp, v3, Sp, Wp, Uf,
-                given, ax)  # fmt: skip
+                given, ax, given and centred)  # fmt: skip
 
 
 @njit(**_JIT)
@@ -828,7 +879,7 @@ def nees_batch(x_hat, P, x_true, attitude, Rg):
     ws = borrow(own)
     x_hat, P, x_true, Rg, ob = borrow((x_hat, P, x_true, Rg, out))
     for t in range(B):
-        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws.Rf, have, ob[t], ws)
+        pd[t] = _nees_one(x_hat[t], P[t], x_true[t], attitude, Rg[t] if have else ws.Rf, have, ob[t], ws, False)
     keep(own)
     return out, pd
 

@@ -35,13 +35,14 @@ points) the kernels do without: there the extra passes cost more than they save.
 At every size ``A`` is factorized in reverse order (``triangular._factor``), so that ``P+ = L A^-1 L^T =
 M M^T`` with ``M`` lower triangular (``triangular._posterior_covariance_rev``): ``P+``'s own Cholesky
 factor comes with it, which the kernels return (as ``J M^T``) for the NEES to use instead of
-factorizing ``P+`` again (``core.kernels.consistency.nees_batch``). Given the true states (``x_true``, the
-engine's runs: ``mc.trial``), the kernels evaluate each posterior's NEES themselves as soon as ``P+`` and its
-square root are formed (``consistency._nees_one``, the per-trial body of ``nees_batch``, or for the full state
-``consistency._nees_given``, its path with the square root given: the same numbers), while
-they are still in cache (a separate pass over the batch would read them again from memory). The square root then
-stays in a scratch array and is not returned (nothing else reads it: a ``(B, n, n)`` output is memory traffic for
-nothing).
+factorizing ``P+`` again (``core.kernels.consistency.nees_batch``); in the centred coordinates ``M`` is the factor
+of ``T P+ T^T`` (none returned), with which the kernels' own NEES evaluate those of ``T e`` (``consistency._one``).
+Given the true states (``x_true``, the engine's runs: ``mc.trial``), the kernels evaluate each posterior's NEES
+themselves as soon as ``P+`` and its square root are formed (``consistency._nees_one``, the per-trial body of
+``nees_batch``, or for the full state ``consistency._nees_given``, its path with the square root given: the same
+numbers), while they are still in cache (a separate pass over the batch would read them again from memory). The
+square root then stays in a scratch array and is not returned (nothing else reads it: a ``(B, n, n)`` output is
+memory traffic for nothing).
 
 Each kernel returns ``ok (B,)``: False where a Cholesky factorization failed (the numpy
 path raises ``LinAlgError`` there; the caller handles those trials the numpy way).
@@ -476,8 +477,9 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
         _reset(chart, xp, e, xo[b], D, dD)  # (D, dD: free after the last measurement)
         # P+ = L A^-1 L^T = M M^T, M = L LA^-T: the Joseph form (I - K H) P- (I - K H)^T + K R K^T
         # of kalman.iekf_update with its optimal gain K = L A^-1 Hw^T R^-1/2 at the same H
-        if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T (its factor T^-1 M' is not triangular: none given)
-            _posterior_covariance_rev(L, LA, A, T)
+        if cen:  # P+ = T^-1 (L' A^-1 L'^T) T^-T (its factor T^-1 M' is not triangular: none returned; judged, the
+            # NEES take M' itself, the centred covariance's root, in Rb: centred=True below)
+            _posterior_covariance_rev(L, LA, A, Rb if judged else T)
             _uncenter_cov(A, Po[b], T, Np)
         else:
             _posterior_covariance_rev(L, LA, Po[b], Rb)  # its W = (M J)^T is P+'s square root J M^T
@@ -486,7 +488,7 @@ def iekf_update_batch(x, P, y, R, mask, model, alpha, cols, chart, tol, max_iter
             if chart == CHART_FULL:  # the full state: _one_full's scratch only (wf), not the 33-array NeesScratch
                 st = _nees_given(xo[b], Po[b], x_true[b], Rb, ev[b, :8], *wf)
             if st < 0:
-                st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nwb) else 0
+                st = 1 if _nees_one(xo[b], Po[b], x_true[b], attitude, Rb, True, ev[b, :8], nwb, cen) else 0
                 if st == 1 and chart == CHART_ALIGNED:  # the per-axis errors and variances its block NEES formed
                     for r in range(N_AXES):
                         ev[b, 9 + r] = nwb.eps[_axis_row(r, n)]
