@@ -17,7 +17,7 @@ from numba import njit
 
 from ..layout import E_POINTS, VEC
 from .model import NNZ
-from .rows import _dot_row, _dot_row_pair, _mirror_lower
+from .rows import _mirror_lower, _pair_products
 
 _JIT = dict(nogil=True, cache=True, fastmath=False, error_model="numpy")
 
@@ -204,11 +204,5 @@ def _sqrt_mul(L, z, out, cen, N, tmp):
 @njit(**_JIT)
 def _lower_mul(L, z, out):
     """``out = L z`` (``L`` lower triangular), row ``i`` ``_dot_row(L, i, z, 0, i + 1)``, two rows per pass
-    (``rows._dot_row_pair``: the same sums in the same order)."""
-    n = L.shape[0]
-    i = 0
-    while i + 2 <= n:
-        out[i], out[i + 1] = _dot_row_pair(L, i, z, 0, i + 1, i + 2)
-        i += 2
-    if i < n:
-        out[i] = _dot_row(L, i, z, 0, i + 1)
+    (``rows._pair_products``)."""
+    _pair_products(L, z, out, True)

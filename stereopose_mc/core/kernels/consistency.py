@@ -229,17 +229,17 @@ def _point_block(xh, N, P, Y, C):
             k1, v1, k2, v2 = d0, -q1, d1, q0
         k0 = E_POINTS + a
         for c in range(E_ROT, c1):
-            Y[a, c] = ((0.0 + 1.0 * P[k0, c]) + v1 * P[k1, c]) + v2 * P[k2, c]
+            Y[a, c] = ((0.0 + P[k0, c]) + v1 * P[k1, c]) + v2 * P[k2, c]  # (1.0 * x is x)
     for a in range(m):
         y0, y1, y2 = Y[a, d0], Y[a, d1], Y[a, d2]
         for b in range(a + 1):
             o = POINTS + b - b % 3
             if b % 3 == 0:
-                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y1 * -xh[o + 2]) + y2 * xh[o + 1]
+                s = ((0.0 + Y[a, E_POINTS + b]) + y1 * -xh[o + 2]) + y2 * xh[o + 1]
             elif b % 3 == 1:
-                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y0 * xh[o + 2]) + y2 * -xh[o]
+                s = ((0.0 + Y[a, E_POINTS + b]) + y0 * xh[o + 2]) + y2 * -xh[o]
             else:
-                s = ((0.0 + Y[a, E_POINTS + b] * 1.0) + y0 * -xh[o + 1]) + y1 * xh[o]
+                s = ((0.0 + Y[a, E_POINTS + b]) + y0 * -xh[o + 1]) + y1 * xh[o]
             C[a, b] = s
             C[b, a] = s
 

@@ -134,6 +134,19 @@ def _dot_row_pair(M, i, b, lo, hi_i, hi_j):
 
 
 @njit(**_JIT)
+def _pair_products(M, v, out, lower):
+    """``out = M v`` row by row, ``out[i] = _dot_row(M, i, v, 0, hi)`` (``hi = i + 1`` where ``lower``: ``M`` lower
+    triangular; else ``n``), two rows per pass (``_dot_row_pair``: the same sums in the same order)."""
+    n = M.shape[0]
+    i = 0
+    while i + 2 <= n:
+        out[i], out[i + 1] = _dot_row_pair(M, i, v, 0, i + 1 if lower else n, i + 2 if lower else n)
+        i += 2
+    if i < n:
+        out[i] = _dot_row(M, i, v, 0, i + 1 if lower else n)
+
+
+@njit(**_JIT)
 def _dot_rows(M, i, V, j, lo, hi):
     """``_dot_row`` of two rows, ``sum_{lo <= k < hi} M[i, k] V[j, k]`` (the same sums in the same order), read in
     place: a row view (``V[j]``) costs an atomic increment and decrement of its reference count."""

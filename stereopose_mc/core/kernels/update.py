@@ -63,7 +63,7 @@ from .centred import _center_cov, _centered_model_rows, _centered_virtual_rows, 
 from .cholesky import _cholesky, _cholesky_t, _cholesky_tu
 from .consistency import N_AXES, _axis_row, _nees_given, _nees_one, _nees_scratch
 from .model import NNZ, Q_END, _measure_one
-from .rows import _dot, _dot_row, _dot_row_pair
+from .rows import _dot, _pair_products
 from .triangular import _factor, _posterior_covariance_rev, _solve
 from .whiten import LARGE_N, _whiten_g, scratch_sizes
 
@@ -195,15 +195,8 @@ def _cost_at(chart, z, xp, L, yb, rws, mask, model, alpha, e, xt, hx, H, D, dD, 
 
 @njit(**_JIT)
 def _row_products(A, v, out):
-    """``out = A v`` row by row, ``out[i] = _dot_row(A, i, v, 0, n)``, two rows per pass (``rows._dot_row_pair``: the
-    same sums in the same order)."""
-    n = A.shape[0]
-    i = 0
-    while i + 2 <= n:
-        out[i], out[i + 1] = _dot_row_pair(A, i, v, 0, n, n)
-        i += 2
-    if i < n:
-        out[i] = _dot_row(A, i, v, 0, n)
+    """``out = A v`` row by row, ``out[i] = _dot_row(A, i, v, 0, n)``, two rows per pass (``rows._pair_products``)."""
+    _pair_products(A, v, out, False)
 
 
 @njit(**_JIT)
