@@ -271,10 +271,11 @@ def _centering(N, n):
     return T
 
 
-@pytest.mark.parametrize("N", [2, 7, 40])
+@pytest.mark.parametrize("N", [1, 2, 7, 40])
 def test_centered_coordinates_of_the_aligned_chart(N):
     """``_center_cov`` is ``T P T^T`` (lower triangle; with a common point error 1e4 times the deviations, the
-    deviations' block stays within 2 ulps of P's largest entry, against an extended-precision reference),
+    deviations' block stays within 2 ulps of P's largest entry, against an extended-precision reference; nothing
+    written past its rows, also with one point, where ``T`` is the identity),
     ``_uncenter_cov`` its inverse (exactly symmetric), ``_uncenter_vec_to`` is ``T^-1 v``; ``_centered_model_rows``
     gives ``H' = H_e T^-1`` with the last point's deviations through the virtual columns
     (``_centered_virtual_rows``: the sum of the other deviations' rows)."""
@@ -289,8 +290,10 @@ def test_centered_coordinates_of_the_aligned_chart(N):
     G = np.zeros((n, n))
     G[12 : 12 + 3 * N, 12 : 12 + 3 * N] = 1e8 * np.kron(np.ones((N, N)), np.eye(3))  # a common error of 1e4
     P = Pd + G
-    Pc, tmp = np.empty((n, n)), np.empty((n, n))
+    buf = np.full((n + 3, n), -7.0)  # Pc with 3 sentinel rows after it
+    Pc, tmp = buf[:n], np.empty((n, n))
     kcen._center_cov(P, Pc, tmp, N)
+    assert np.all(buf[n:] == -7.0)
     Tl = T.astype(np.longdouble)  # the reference in extended precision from P as stored (its 1e8 + ~1 entries)
     ref = (Tl @ P.astype(np.longdouble) @ Tl.T).astype(float)
     il = np.tril_indices(n)

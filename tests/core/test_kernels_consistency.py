@@ -352,12 +352,12 @@ def test_small_block_mahalanobis_reads_its_block_in_place():
             assert got == want or (np.isnan(got) and np.isnan(want)), (trial, o, r, m, got, want)
 
 
-@pytest.mark.parametrize("N,centred", [(1, False), (2, False), (5, False), (8, False), (2, True), (5, True), (8, True)])
+@pytest.mark.parametrize("N,centred", [(N, c) for c in (False, True) for N in (1, 2, 5, 8)])
 def test_gauge_columns_are_solved_like_a_triangular_solve(N, centred):
     """``_gauge_forward``: ``U = L^-1 G`` for the three gauge columns (1 on each point's rows) in one pass, ``L``
     given as the square root ``R = J L^T`` (the compiled update's layout), against scipy's triangular solve; zero
     above the points' rows. ``centred``: the columns ``T G`` of the centred coordinates (``core.kernels.centred``'s
-    ``T`` applied to ``G`` by ``_center_rows``, for two points or more: the unit vectors of the points' mean)."""
+    ``T`` applied to ``G`` by ``_center_rows``: the unit vectors of the points' mean)."""
     from scipy.linalg import solve_triangular
 
     from stereopose_mc.core.kernels.centred import _center_rows

@@ -58,10 +58,16 @@ def _center_rows(M, out, N):
     The mean is a compensated sum (Knuth's TwoSum on each term, branch-free): a point's deviation
     from the mean is small against the points' common (unmeasured) error, and a plain sum of ``N``
     rows would lose ~``N`` ulps of the large common part in it. ``out``'s first deviation rows hold
-    the compensations until the mean is final."""
+    the compensations until the mean is final; with one point there are none (``T`` is the identity: the mean of
+    one point is that point), and the rows after it are ``k``'s or past the array: its row is copied."""
     k = M.shape[1]
     p0 = E_POINTS
     _copy_other_rows(M, out, N)
+    if N == 1:
+        for a in range(3):
+            for j in range(k):
+                out[p0 + a, j] = M[p0 + a, j]
+        return
     for a in range(3):
         for j in range(k):
             out[p0 + a, j] = 0.0
