@@ -38,3 +38,22 @@ def test_a_bad_scenario_is_exit_2_with_its_error_line(tmp_path):
     r = spmc("run", tmp_path / "missing.yaml", "--out", tmp_path / "run", "--quiet")
     assert r.returncode == 2 and r.stderr.startswith("error: ")
     assert not (tmp_path / "run").exists()
+
+
+def test_openblas_idle_threads_sleep_at_once_unless_the_user_says_otherwise():
+    """``spmc`` sets ``OPENBLAS_THREAD_TIMEOUT=4`` (OpenBLAS's idle pool threads sleep after 2^4 cycles instead of
+    spinning ~0.1 s: BLAS runs single-threaded in the chunks) before numpy loads OpenBLAS, which reads it then; a
+    value in the environment is kept."""
+    import os
+
+    from stereopose_mc.cli.main import BLAS_THREAD_TIMEOUT
+
+    probe = ("import os, sys\nfrom stereopose_mc.cli import main as m\n"
+             "m.app = lambda: print(os.environ.get('OPENBLAS_THREAD_TIMEOUT'), 'numpy' in sys.modules)\nm.main()\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    for given, want in ((None, BLAS_THREAD_TIMEOUT), ("9", "9")):
+        e = env if given is None else {**env, "OPENBLAS_THREAD_TIMEOUT": given}
+        r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, env=e)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.split() == [want, "False"]
+    assert BLAS_THREAD_TIMEOUT == "4"

@@ -18,12 +18,19 @@ from . import dynamics_cmd, inertia_cmd, observability_cmd, report_cmds, run_cmd
 from . import export_cmd, sweep_cmd, tune_cmd  # noqa: F401  (each module registers its commands)
 from .app import app
 
+# OpenBLAS's idle worker threads spin for 2^28 CPU cycles (~0.1 s) after their pool starts or after a call before they
+# sleep. The runs compute with BLAS single-threaded (``mc.engine``: ``threadpool_limits``), so that spin of numpy's and
+# SciPy's pools, as they load, only takes a core from the start-up and the first chunks (~0.2 s of CPU per run). 2^4
+# cycles: they sleep at once. Set before numpy is imported; a value in the environment is kept.
+BLAS_THREAD_TIMEOUT = "4"
+
 
 def main() -> None:  # console-script entry point
     """``spmc``; an unforeseen OS error (a file that vanished, a full disk) is one line and exit 2, not a traceback.
 
     The process then ends without tearing the interpreter down (``exit_now``).
     """
+    os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", BLAS_THREAD_TIMEOUT)
     try:
         app()
     except SystemExit as exc:
