@@ -3,6 +3,7 @@ complete output, files written."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -44,8 +45,6 @@ def test_openblas_idle_threads_sleep_at_once_unless_the_user_says_otherwise():
     """``spmc`` sets ``OPENBLAS_THREAD_TIMEOUT=4`` (OpenBLAS's idle pool threads sleep after 2^4 cycles instead of
     spinning ~0.1 s: BLAS runs single-threaded in the chunks) before numpy loads OpenBLAS, which reads it then; a
     value in the environment is kept."""
-    import os
-
     from stereopose_mc.cli.main import BLAS_THREAD_TIMEOUT
 
     probe = ("import os, sys\nfrom stereopose_mc.cli import main as m\n"
@@ -55,5 +54,5 @@ def test_openblas_idle_threads_sleep_at_once_unless_the_user_says_otherwise():
         e = env if given is None else {**env, "OPENBLAS_THREAD_TIMEOUT": given}
         r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, env=e)
         assert r.returncode == 0, r.stderr
-        assert r.stdout.split() == [want, "False"]
+        assert r.stdout.split() == [want, "False"]  # (numpy not loaded yet: OpenBLAS reads it as it loads)
     assert BLAS_THREAD_TIMEOUT == "4"
