@@ -21,7 +21,7 @@ from ..rundir.store import RunDirError
 from .errors import SpmcError
 from .scenarios import as_scenario
 
-BACKENDS = ("auto", "loky", "threading", "dask")
+BACKENDS = ("auto", "fork", "threading", "loky", "dask")
 KERNELS = ("numpy", "compiled")
 
 Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
@@ -219,7 +219,7 @@ def _options(jobs: int | None, chunk_size: int | None, backend: str, kernels: st
         raise SpmcError(f"--scheduler is a Dask scheduler's address: it needs --backend dask, not --backend {backend}")
     backend = "dask" if scheduler is not None else backend
     if backend not in BACKENDS:
-        raise SpmcError(f"--backend must be auto, loky, threading or dask (got {backend!r})")
+        raise SpmcError(f"--backend must be auto, fork, threading, loky or dask (got {backend!r})")
     if kernels not in (None, *KERNELS):
         raise SpmcError(f"--kernels must be numpy or compiled (got {kernels!r})")
     return engine.RunOptions(jobs=jobs, chunk_size=chunk_size, backend=backend, kernels=kernels, scheduler=scheduler,

@@ -19,8 +19,9 @@ def run(
     out: Optional[Path] = typer.Option(None, "--out", help="run directory (default runs/<scenario name>)"),
     jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1, help=JOBS_HELP),
     chunk_size: Optional[int] = typer.Option(None, "--chunk-size", min=1, help=CHUNK_HELP),
-    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: threads with the compiled kernels, "
-                                          "loky processes with numpy) | loky | threading | dask"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="auto (default: with the compiled kernels, worker "
+                                          "processes forked from this one on Linux, else threads; loky processes with "
+                                          "numpy) | fork | threading | loky | dask"),
     kernels: Optional[str] = typer.Option(None, "--kernels", help=KERNELS_HELP + "; on --resume, the run's"),
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, implies --backend dask "
                                             "(default with dask: a LocalCluster); see docs/distributed.md"),

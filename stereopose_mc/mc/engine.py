@@ -54,8 +54,8 @@ from ..rundir.percentiles import percentile_columns, percentiles_markdown
 from ..sim import measurements as meas
 from ..sim.truth import Truth
 from ..sim.truth_cache import cached_truth
-from . import dispersed, rows, scheduler_probe, startup
-from .progress import PROXY_EVERY_S, StepCounter, Ticker
+from . import dispersed, forked, rows, scheduler_probe, startup
+from .progress import PROXY_EVERY_S, SharedSteps, StepCounter, Ticker
 from .trial import Bounds, run_chunk
 
 if TYPE_CHECKING:  # pandas is not imported by a run (~0.25 s): only by RunResult.trials / .percentiles
@@ -363,24 +363,33 @@ def compute_chunks(scn: Scenario, trials: np.ndarray, opts: RunOptions) -> list[
     ``studies.tuning``). The same results for any ``jobs``, chunk size or backend."""
     todo = np.asarray(trials, dtype=np.int64)
     chunks = plan_chunks(todo, opts.chunk_size or auto_chunk_size(opts, todo.size, state_length(scn)))
-    outs = list(_iterate(scn.model_dump_json(), chunks, opts))
+    outs = list(_iterate(scn.model_dump_json(), chunks, opts, evaluations=True))
     return sorted(outs, key=lambda co: int(co.trials[0]))
 
 
-def local_backend(opts: RunOptions, n_chunks: int, images: bool = False) -> str:
-    """Where the chunks run: ``inline`` (this thread), ``threading``, ``loky`` or ``dask``.
+def local_backend(opts: RunOptions, n_chunks: int, images: bool = False, evaluations: bool = False) -> str:
+    """Where the chunks run: ``inline`` (this thread), ``fork``, ``threading``, ``loky`` or ``dask``.
 
-    One job or one chunk runs inline (no pool to start); ``auto`` picks threads for the
-    compiled kernels (they release the GIL, and a thread imports nothing) and loky
-    processes for the numpy kernels (numpy's small-array calls hold the GIL) and for
-    ``images`` campaigns (the tracker's Python and numpy work holds it).
+    One job or one chunk runs inline (no pool to start); ``auto`` picks, for the compiled
+    kernels, workers forked from this process on Linux (``mc/forked.py``: nothing imported
+    again, and nothing shared, where threads share OpenBLAS's buffer pool), else threads (the
+    kernels release the GIL, and a thread imports nothing); and loky processes for the numpy
+    kernels (numpy's small-array calls hold the GIL) and for ``images`` campaigns (the
+    tracker's Python and numpy work holds it). ``fork`` where it is not available: :class:`RunError`.
+    ``evaluations``: a study's many short computations in this process (:func:`compute_chunks`), which
+    ``auto`` gives threads: they load the kernels once, forked workers at every evaluation (~0.2 s).
     """
     if opts.backend == "dask":
         return "dask"
+    if opts.backend == "fork" and not forked.available():
+        raise RunError(f"--backend fork: worker processes are forked on Linux only (this is {sys.platform}); "
+                       "use --backend threading or loky")  # fmt: skip
     if opts.jobs == 1 or n_chunks <= 1:
         return "inline"
     if opts.backend == "auto":
-        return "threading" if opts.kernels == "compiled" and not images else "loky"
+        if opts.kernels == "compiled" and not images:
+            return "fork" if forked.available() and not evaluations else "threading"
+        return "loky"
     return opts.backend
 
 
@@ -445,10 +454,38 @@ def _threaded(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, co
             pool.shutdown(wait=True, cancel_futures=True)
 
 
+def _forked(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
+            counter: Callable[[Mapping | None], StepCounter] | None = None,
+            write: Callable[[ChunkOutput], None] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
+    """Chunk outputs as they finish, from ``opts.jobs`` workers forked from this process (``mc/forked.py``).
+
+    Each worker computes and writes its chunks (``write``, inherited through the fork) and dies with
+    this process; progress comes through a :class:`progress.SharedSteps` made before the fork. A
+    worker that dies is a :class:`RunError` naming the chunk's trials (the finished chunks are kept).
+    """
+    steps = None
+    if counter is not None:
+        labels = [f.label for f in Scenario.model_validate_json(scenario_json).filters]
+        steps = counter(SharedSteps([int(c[0]) for c in chunks], labels)).steps
+
+    def job(i: int) -> ChunkOutput:
+        c = chunks[i]
+        tick = None if steps is None else StepCounter.tick_of(steps, int(c[0]))
+        return _computed_and_written(write, scenario_json, c, opts.timeseries, opts.kernels, tick)
+
+    names = [f"trials {int(c[0])}-{int(c[-1])}" for c in chunks]
+    try:
+        yield from forked.outputs(job, len(chunks), opts.jobs, names=names)
+    except forked.WorkerDied as exc:
+        raise RunError(f"{exc}; the finished chunks are kept: continue with spmc run --resume DIR") from None
+
+
 def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, info: dict | None = None,
              counter: Callable[[Mapping | None], StepCounter] | None = None,
-             write: Callable[[ChunkOutput], None] | None = None) -> Iterable[ChunkOutput]:  # fmt: skip
-    """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest).
+             write: Callable[[ChunkOutput], None] | None = None,
+             evaluations: bool = False) -> Iterable[ChunkOutput]:  # fmt: skip
+    """Chunk outputs as they finish, in any order (``info``: where they run, for the manifest;
+    ``evaluations``: :func:`local_backend`'s).
 
     ``counter(steps)``: called once with the mapping the chunks will count their trial-steps in
     (None: a plain dict, for this process's threads; a Manager's dict for loky processes); Dask's
@@ -456,9 +493,12 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
     yielded: in the thread that computed it (inline, threading), else in this one as it arrives.
     """
     images = json.loads(scenario_json)["measurements"].get("source") == "images"
-    where = local_backend(opts, len(chunks), images)
+    where = local_backend(opts, len(chunks), images, evaluations)
     if info is not None:
         info["ran_as"] = where
+    if where == "fork":
+        yield from _forked(scenario_json, chunks, opts, counter, write)
+        return
     if where in ("inline", "threading"):
         sc = None if counter is None else counter(None)
         if where == "threading":

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable, Mapping
+from typing import Callable, Iterable, Mapping
 
 Progress = Callable[[int, int, dict], None]  # (trials done, total, diverged so far per filter)
 PROXY_EVERY_S = 0.5  # a worker process sends its chunk's trial-step count to the driver at most this often
@@ -21,9 +21,9 @@ class StepCounter:
     """Trial-steps done so far by the chunks of a run, for progress between chunk ends.
 
     Each chunk owns one entry (its first trial -> its trial-steps so far), so the chunks never
-    write the same entry and a write needs no lock: a plain dict for threads, a Manager's dict
-    proxy for processes (each write a round trip to the Manager: sent at most every
-    ``PROXY_EVERY_S``). The driver polls :meth:`total`.
+    write the same entry and a write needs no lock: a plain dict for threads, a :class:`SharedSteps`
+    for workers forked from the driver, a Manager's dict proxy for other processes (each write a
+    round trip to the Manager: sent at most every ``PROXY_EVERY_S``). The driver polls :meth:`total`.
     """
 
     def __init__(self, steps: Mapping | None = None):
@@ -71,6 +71,34 @@ class StepCounter:
         """The ``tick(n)`` of the chunk whose first trial is ``key``."""
         return cls._Tick(steps, key, every_s)
 
+
+
+class SharedSteps:
+    """:class:`StepCounter`'s mapping in memory shared with the workers forked after it is made.
+
+    A fixed entry per chunk key and per ``(chunk key, filter label)``, all 0 at first, each an
+    int64 slot of one anonymous shared mapping (``multiprocessing.RawArray``, inherited through
+    the fork): a worker's write is a store into its own slots, the driver's read a copy of all.
+    A key it was not made with is a ``KeyError`` (a chunk or a filter the run does not have).
+    """
+
+    def __init__(self, keys: Iterable[int], labels: Iterable[str]):
+        import multiprocessing
+
+        keys, labels = [int(k) for k in keys], list(dict.fromkeys(labels))
+        slots: list[int | tuple[int, str]] = [*keys, *((k, label) for k in keys for label in labels)]
+        self._slot = {key: i for i, key in enumerate(slots)}
+        self._values = multiprocessing.get_context("fork").RawArray("q", max(1, len(slots)))
+
+    def __setitem__(self, key: int | tuple[int, str], value: int) -> None:
+        self._values[self._slot[key]] = int(value)
+
+    def __getitem__(self, key: int | tuple[int, str]) -> int:
+        return int(self._values[self._slot[key]])
+
+    def items(self) -> list[tuple[int | tuple[int, str], int]]:
+        values = self._values[:]  # (one copy: the slots as they are now)
+        return [(key, int(values[i])) for key, i in self._slot.items()]
 
 
 class Ticker:

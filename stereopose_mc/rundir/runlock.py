@@ -19,6 +19,7 @@ from typing import Callable, Iterator
 from .store import RunDirError, build_dir, check_replaceable, now_iso
 
 LOCK_NAME = ".lock"
+_HELD: set[int] = set()  # this process's lock descriptors (a forked child closes its copies: forget_inherited)
 
 
 def _holder(fd: int) -> str:
@@ -50,12 +51,28 @@ def acquire(run_dir: Path, what: str) -> int:
     info = {"pid": os.getpid(), "host": platform.node(), "start": now_iso(), "what": what}
     os.ftruncate(fd, 0)
     os.pwrite(fd, json.dumps(info).encode(), 0)
+    _HELD.add(fd)
     return fd
 
 
 def release(fd: int | None) -> None:
     if fd is not None:
+        _HELD.discard(fd)
         os.close(fd)  # closing the descriptor releases the flock
+
+
+def forget_inherited() -> None:
+    """In a child forked from a lock holder: close its copies of the holder's lock descriptors.
+
+    A ``flock`` belongs to the open file, which a fork shares: the lock would outlive the holder
+    as long as a child lives. Closed in the child, it stays the holder's alone (closing a copy
+    does not release it)."""
+    for fd in list(_HELD):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _HELD.clear()
 
 
 @contextmanager

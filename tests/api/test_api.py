@@ -127,7 +127,7 @@ def test_resume_extends_a_run_to_the_same_bytes(scn, run3, tmp_path):
 
 
 @pytest.mark.parametrize("kw,needle", [
-    ({"backend": "threads"}, "--backend must be auto, loky, threading or dask"),
+    ({"backend": "threads"}, "--backend must be auto, fork, threading, loky or dask"),
     ({"kernels": "gpu"}, "--kernels must be numpy or compiled"),
     ({"backend": "loky", "scheduler": "tcp://x:1"}, "needs --backend dask"),
     ({"timeseries": "some"}, "--timeseries must be one of"),

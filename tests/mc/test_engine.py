@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -210,6 +211,23 @@ def test_chunks_finishing_out_of_order_merge_to_the_same_bytes(scenario, referen
     assert not list(out.glob(".publish-*"))
 
 
+def test_forked_workers_finishing_out_of_order_merge_to_the_same_bytes(scenario, reference, tmp_path, monkeypatch):
+    """The default backend of the compiled kernels on Linux: the chunks computed and written in forked workers
+    (the monkeypatched functions are theirs through the fork), merged in trial order by this process."""
+    from stereopose_mc import api
+    from stereopose_mc.mc import engine, forked
+
+    if not forked.available():
+        pytest.skip("forked workers: Linux only")
+    _first_chunk_slow(monkeypatch, None)
+    out = tmp_path / "run"
+    api.run(scenario, out=out, jobs=2, chunk_size=2, kernels="compiled")
+    same_bytes(reference, out)
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["backend"]["backend"] == "auto" and m["backend"]["ran_as"] == "fork"
+    assert engine.local_backend(engine.RunOptions(jobs=2), 4) == "fork"
+
+
 def test_resume_merges_earlier_chunk_files_with_new_chunks(scenario, reference, tmp_path, monkeypatch):
     from stereopose_mc import api
 
@@ -220,14 +238,18 @@ def test_resume_merges_earlier_chunk_files_with_new_chunks(scenario, reference, 
             (out / "chunks" / f"{name}-{rng}.parquet").unlink()
     seen = []
     _first_chunk_slow(monkeypatch, seen, slow=2)
-    api.resume(out, chunk_size=1)
+    api.resume(out, chunk_size=1, backend="threading")  # (``seen`` is filled in this process)
     assert seen[-1][0] == 2 and sorted(f for f, _ in seen) == [2, 3, 6, 7]  # merged: 0-1 (file), 2, 3, 4-5 (file), 6, 7
     same_bytes(reference, out)
 
 
-def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch):
+@pytest.mark.parametrize("backend", ["threading", "fork"])
+def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch, backend):
     from stereopose_mc import api
-    from stereopose_mc.mc import engine
+    from stereopose_mc.mc import engine, forked
+
+    if backend == "fork" and not forked.available():
+        pytest.skip("forked workers: Linux only")
 
     real = engine.compute_chunk
 
@@ -240,7 +262,7 @@ def test_a_failing_chunk_leaves_no_merge_behind(scenario, tmp_path, monkeypatch)
     monkeypatch.setattr(engine, "compute_chunk", compute)
     out = tmp_path / "run"
     with pytest.raises(RuntimeError, match="chunk 4-5 failed"):
-        api.run(scenario, out=out, jobs=2, chunk_size=2, backend="threading")
+        api.run(scenario, out=out, jobs=2, chunk_size=2, backend=backend)
     assert not list(out.glob(".publish-*")) and not (out / "timeseries.parquet").exists()
     assert {p.name for p in (out / "chunks").glob("chunk-*.json")} >= {"chunk-0000000-0000001.json"}
 

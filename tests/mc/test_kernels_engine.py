@@ -3,6 +3,7 @@ give the same bytes (case B's filters in the aligned error state, their default,
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -58,9 +59,16 @@ def test_compiled_full_state_same_bytes_for_any_jobs_and_chunk(tmp_path):
     same_bytes(a, b)
 
 
-def test_auto_backend_picks_threads_for_compiled_and_inline_for_one_chunk():
+def test_auto_backend_picks_forked_workers_for_compiled_and_inline_for_one_chunk(monkeypatch):
+    from stereopose_mc.mc import forked
+
     opts = engine.RunOptions(jobs=2, backend="auto", kernels="compiled")
+    assert engine.local_backend(opts, 4) == ("fork" if sys.platform.startswith("linux") else "threading")
+    monkeypatch.setattr(forked, "available", lambda: False)  # macOS, Windows: threads
     assert engine.local_backend(opts, 4) == "threading"
+    with pytest.raises(engine.RunError, match="--backend fork: worker processes are forked on Linux only"):
+        engine.local_backend(engine.RunOptions(jobs=2, backend="fork"), 4)
+    monkeypatch.undo()
     assert engine.local_backend(opts, 1) == "inline"
     assert engine.local_backend(engine.RunOptions(jobs=2, backend="auto", kernels="numpy"), 4) == "loky"
     assert engine.local_backend(opts, 4, images=True) == "loky"  # the tracker holds the GIL

@@ -58,9 +58,9 @@ def test_an_evaluation_on_two_cores_is_the_same_as_on_one(monkeypatch):
     monkeypatch.setattr(engine, "AUTO_CHUNK_MIN", 2)  # case B's 6 trials split as a larger state's would be
     seen, real = [], engine._iterate
 
-    def spy(scenario_json, chunks, opts, info=None, *args):
+    def spy(scenario_json, chunks, opts, info=None, *args, **kwargs):
         info = {} if info is None else info
-        out = list(real(scenario_json, chunks, opts, info, *args))
+        out = list(real(scenario_json, chunks, opts, info, *args, **kwargs))
         seen.append((len(chunks), info["ran_as"]))
         return out
 
