@@ -461,7 +461,7 @@ def _forked(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
 
     Each worker computes and writes its chunks (``write``, inherited through the fork) and dies with
     this process; progress comes through a :class:`progress.SharedSteps` made before the fork. A
-    worker that dies is a :class:`RunError` naming the chunk's trials (the finished chunks are kept).
+    worker that dies is a :class:`RunError` naming the chunks in flight (the finished chunks are kept).
     """
     steps = None
     if counter is not None:
@@ -488,9 +488,10 @@ def _iterate(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions, inf
     ``evaluations``: :func:`local_backend`'s).
 
     ``counter(steps)``: called once with the mapping the chunks will count their trial-steps in
-    (None: a plain dict, for this process's threads; a Manager's dict for loky processes); Dask's
-    remote chunks are counted when they end. ``write(chunk)``: done to every chunk before it is
-    yielded: in the thread that computed it (inline, threading), else in this one as it arrives.
+    (None: a plain dict, for this process's threads; a :class:`SharedSteps` for forked workers; a
+    Manager's dict for loky processes); Dask's remote chunks are counted when they end.
+    ``write(chunk)``: done to every chunk before it is yielded: in the thread or forked worker that
+    computed it (inline, threading, fork), else in this one as it arrives.
     """
     images = json.loads(scenario_json)["measurements"].get("source") == "images"
     where = local_backend(opts, len(chunks), images, evaluations)

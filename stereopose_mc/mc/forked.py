@@ -17,10 +17,10 @@ job, a closure of the driver's, reaches them through the fork, not through pickl
 come back pickled (a chunk's Arrow tables). A worker ignores SIGINT: on Ctrl-C the driver stops
 waiting, cancels the chunks not started and waits for the running ones, which finish and write their
 files (a resume keeps them), as the threads' chunks do. A worker that dies (killed, out of memory)
-is a :class:`WorkerDied` naming the chunks in flight; the chunks that finished are kept. A worker dies with
-the driver (``PR_SET_PDEATHSIG``: killed, even by SIGKILL, the driver leaves no worker writing into
-its run directory) and closes its copies of the driver's run locks (``rundir.runlock``), which the
-driver alone holds.
+is a :class:`WorkerDied` naming the chunks in flight; the chunks that finished are kept. A worker
+dies with the driver (``PR_SET_PDEATHSIG``: killed, even by SIGKILL, the driver leaves no worker
+writing into its run directory) and closes its copies of the driver's run locks
+(``rundir.runlock``), which the driver alone holds.
 
 Linux only (:func:`available`): macOS's system libraries are not safe to use in a forked child,
 Windows has no fork. Python 3.12 and newer warn that forking a process that has threads may deadlock
@@ -120,8 +120,8 @@ def outputs(job: Callable[[int], T], n: int, jobs: int, init: Callable[[], None]
 
     ``init()`` runs once in each worker before its first chunk. An exception raised by ``job`` is
     raised here (its traceback from the worker chained); a worker that dies is :class:`WorkerDied`
-    naming the chunks then in flight (``names[i]``, if given, for chunk ``i``). Leaving early (an error, Ctrl-C, the consumer
-    stopping) cancels the chunks not started and waits for the running ones.
+    naming the chunks then in flight (``names[i]``, if given, for chunk ``i``). Leaving early (an
+    error, Ctrl-C, the consumer stopping) cancels the chunks not started and waits for the running ones.
     """
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool

@@ -72,7 +72,6 @@ class StepCounter:
         return cls._Tick(steps, key, every_s)
 
 
-
 class SharedSteps:
     """:class:`StepCounter`'s mapping in memory shared with the workers forked after it is made.
 
