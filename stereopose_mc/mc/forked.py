@@ -38,6 +38,8 @@ import sys
 import warnings
 from typing import Callable, Iterable, Sequence, TypeVar
 
+from ..rundir import runlock  # (imported here: a worker imports nothing)
+
 T = TypeVar("T")
 
 _JOB: Callable[[int], object] | None = None  # in a worker: the job it inherited from the driver
@@ -96,8 +98,6 @@ def _start(job: Callable[[int], object], init: Callable[[], None] | None, parent
     decides), keeps the job and the chunks' states; then ``init()``."""
     global _JOB, _STATE
     _die_with_parent(parent)
-    from ..rundir import runlock
-
     runlock.forget_inherited()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _JOB, _STATE = job, state
