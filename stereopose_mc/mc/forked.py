@@ -1,13 +1,13 @@
 """A run's chunks in worker processes forked from the driver: the default for the compiled kernels on Linux.
 
 Two threads of one process running the compiled kernels share more than the GIL: OpenBLAS's pool of
-work buffers (every ``dgemm`` and ``potrf`` takes a buffer from it and gives it back, under one mutex,
-and a buffer taken by one thread is next packed by the other), the reference counts of the objects
-both touch, the allocator's bookkeeping. Measured on a 2-core machine (case B, 1,000 trials, chunks of
-250): the threads' chunks took 1.9-2.1 s each for minutes at a time and 2.2-2.7 s at others, while two
-processes running the same chunks at the same moments took 1.8-2.1 s (``perf``: in the slow minutes
-OpenBLAS's packing, ``pthread_mutex_lock`` / ``unlock`` and the kernel's share grew, the compiled
-kernels' own code did not); the whole run 4.3-5.4 s on threads, 4.4-4.8 s on forked workers. A forked
+work buffers (a ``dgemm`` takes one from the pool and gives it back, so the two threads pack into each
+other's buffers), the reference counts of the objects both touch, the allocator's bookkeeping. Measured
+on a 2-core machine (case B, 1,000 trials, chunks of 250): the threads' chunks took 1.9-2.1 s each for
+minutes at a time and 2.2-2.7 s at others, while two processes running the same chunks at the same
+moments took 1.8-2.1 s (``perf``, a slow run against a fast one: OpenBLAS's packing copies and its
+``blas_memory_alloc`` / ``free``, ``pthread_mutex_lock`` / ``unlock`` and the kernel's share grew, the
+compiled kernels' own code did not); the whole run 4.3-5.7 s on threads, 4.4-4.8 s on forked workers. A forked
 worker starts with everything the driver has loaded (modules, the scenario's prepared truth, the
 kernels Numba has loaded) and computes its chunks with nothing shared but the files it writes.
 

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +155,48 @@ def test_a_worker_that_dies_in_a_run_is_a_run_error_and_the_finished_chunks_stay
     monkeypatch.undo()
     r = api.resume(out)
     assert np.array_equal(np.unique(r.trials["trial"]), np.arange(8))
+
+
+def _children(pid: int) -> list[int]:
+    """The live (not zombie) processes whose parent is ``pid`` (from ``/proc``)."""
+    out = []
+    for status in Path("/proc").glob("[0-9]*/status"):
+        try:
+            fields = dict(line.split(":\t", 1) for line in status.read_text().splitlines() if ":\t" in line)
+        except OSError:  # gone meanwhile
+            continue
+        if fields.get("PPid", "").strip() == str(pid) and not fields.get("State", "").startswith("Z"):
+            out.append(int(status.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return not (Path("/proc") / str(pid) / "stat").read_text().split(") ", 1)[1].startswith("Z")
+    except (OSError, IndexError):
+        return False
+
+
+def test_the_workers_die_with_a_driver_killed_by_sigkill(tmp_path):
+    """PR_SET_PDEATHSIG: a driver killed outright (no handler runs) leaves no worker computing into its run."""
+    scn = write_scenario(tmp_path / "s.yaml", trials=400, time=SHORT)
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "stereopose_mc.cli.main", "run", str(scn), "--out", str(out), "--chunk-size", "2",
+           "--jobs", "2", "--backend", "fork", "--quiet", "--no-report"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not list(out.glob("chunks/trials-*.parquet")):
+            time.sleep(0.01)
+        workers = _children(proc.pid)
+        assert len(workers) >= 2, "the run's workers were not found (or the run had ended)"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 10
+        while time.time() < deadline and any(_alive(w) for w in workers):
+            time.sleep(0.01)
+        assert not [w for w in workers if _alive(w)]
+        assert not (out / "trials.parquet").exists()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
