@@ -460,7 +460,7 @@ def _forked(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
     """Chunk outputs as they finish, from ``opts.jobs`` workers forked from this process (``mc/forked.py``).
 
     Each worker computes and writes its chunks (``write``, inherited through the fork) and dies with
-    this process; progress comes through a :class:`progress.SharedSteps` made before the fork. A
+    this process (``forked``'s ``prctl``, and :func:`_die_with`'s watch as loky's workers have it); progress comes through a :class:`progress.SharedSteps` made before the fork. A
     worker that dies is a :class:`RunError` naming the chunks in flight (the finished chunks are kept).
     """
     steps = None
@@ -475,7 +475,7 @@ def _forked(scenario_json: str, chunks: list[np.ndarray], opts: RunOptions,
 
     names = [f"trials {int(c[0])}-{int(c[-1])}" for c in chunks]
     try:
-        yield from forked.outputs(job, len(chunks), opts.jobs, names=names)
+        yield from forked.outputs(job, len(chunks), opts.jobs, functools.partial(_die_with, os.getpid()), names)
     except forked.WorkerDied as exc:
         raise RunError(f"{exc}; the finished chunks are kept: continue with spmc run --resume DIR") from None
 

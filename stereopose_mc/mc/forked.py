@@ -66,31 +66,19 @@ def available() -> bool:
 
 
 PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when the thread that forked it ends
-ORPHAN_POLL_S = 0.5  # without prctl: how often a worker looks whether its parent is gone
 
 
 def _die_with_parent(parent: int) -> None:
     """SIGKILL to this process when its parent ends (Linux's ``prctl(PR_SET_PDEATHSIG)``), or exit now if the
-    parent already has; where ``prctl`` fails, a thread that exits once the parent is gone (polled every
-    ``ORPHAN_POLL_S``)."""
+    parent already has. (Where ``prctl`` fails, the watch that the ``init`` of :func:`outputs` may start stays.)"""
     import ctypes
 
     try:
-        ok = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
     except (OSError, AttributeError):
-        ok = False
+        pass
     if os.getppid() != parent:  # the parent ended before the call
         os._exit(1)
-    if not ok:
-        import threading
-        import time
-
-        def watch() -> None:
-            while os.getppid() == parent:
-                time.sleep(ORPHAN_POLL_S)
-            os._exit(1)
-
-        threading.Thread(target=watch, name="spmc-orphan-watch", daemon=True).start()
 
 
 def _start(job: Callable[[int], object], init: Callable[[], None] | None, parent: int, state) -> None:

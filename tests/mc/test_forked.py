@@ -66,8 +66,7 @@ def test_init_runs_once_in_each_worker_before_its_chunks():
     started = multiprocessing.get_context("fork").RawValue("q", 0)
 
     def init():
-        with_lock = started  # (a shared int: each worker adds one)
-        with_lock.value += 1
+        started.value += 1  # (a shared int: each worker adds one)
 
     out = list(forked.outputs(lambda i: started.value >= 1, 4, 2, init=init))
     assert out == [True] * 4 and 1 <= started.value <= 2
