@@ -731,6 +731,7 @@ def _run(scn: Scenario, out: Path, opts: RunOptions, progress: Progress | None, 
         raise RunError(f"--trials: {too_big}" if opts.trials else too_big)
     if opts.scheduler and opts.backend != "dask":
         raise RunError("--scheduler needs --backend dask")
+    local_backend(opts, 2)  # a backend this machine does not offer (fork off Linux) fails before a file is written
     if opts.scheduler:  # fail before anything is written
         connect_dask(opts.scheduler, opts.jobs)[0].close()
     shash = scenario_hash(scn)

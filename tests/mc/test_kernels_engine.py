@@ -75,6 +75,17 @@ def test_auto_backend_picks_forked_workers_for_compiled_and_inline_for_one_chunk
     assert engine.local_backend(engine.RunOptions(jobs=1, backend="loky"), 4) == "inline"
 
 
+def test_backend_fork_where_it_is_not_offered_is_one_line_exit_2_and_writes_nothing(scenario, tmp_path, monkeypatch):
+    from stereopose_mc.mc import forked
+
+    monkeypatch.setattr(forked, "available", lambda: False)
+    out = tmp_path / "x"
+    r = runner.invoke(app, ["run", str(scenario), "--out", str(out), "--backend", "fork", "--quiet"])
+    assert r.exit_code == 2 and "--backend fork: worker processes are forked on Linux only" in r.output
+    assert len(r.output.strip().splitlines()) == 1 and "Traceback" not in r.output
+    assert not out.exists() and not list(tmp_path.glob(".x*"))
+
+
 def test_auto_chunk_size_compiled_splits_over_jobs_but_keeps_small_runs_in_one_chunk():
     c = engine.RunOptions(jobs=2, kernels="compiled")
     sizes = {n: engine.auto_chunk_size(c, n) for n in (1, 2, 10, 40, 63, 64, 100, 1000)}
